@@ -1,0 +1,147 @@
+"""Trajectory and Dataset containers: measured states and inputs over time."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+
+class DataError(ValueError):
+    """Bad input data; the message names the file, row and column where known."""
+
+
+@dataclasses.dataclass
+class Trajectory:
+    """One uninterrupted record: sample times, states and inputs.
+
+    Attributes
+    ----------
+    traj_id : int
+    t : ndarray, shape (n,)
+        Seconds from the start of the trajectory.
+    x : ndarray, shape (n, n_states)
+    u : ndarray, shape (n, n_inputs)
+    """
+
+    traj_id: int
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+
+    def __post_init__(self):
+        self.t = np.asarray(self.t, dtype=float)
+        self.x = np.asarray(self.x, dtype=float)
+        self.u = np.asarray(self.u, dtype=float)
+        n = self.t.shape[0]
+        if self.t.ndim != 1 or self.x.ndim != 2 or self.u.ndim != 2 or self.x.shape[0] != n or self.u.shape[0] != n:
+            raise DataError(
+                f"trajectory {self.traj_id}: inconsistent shapes t{self.t.shape} x{self.x.shape} u{self.u.shape}"
+            )
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+
+@dataclasses.dataclass
+class Dataset:
+    """A set of trajectories sharing signal names and a sample period.
+
+    Attributes
+    ----------
+    state_names, input_names : tuple of str
+    trajectories : list of Trajectory
+    metadata : dict
+        Free-form provenance (sample period ``dt``, units, parameters, scenario, ...).
+    """
+
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    trajectories: list[Trajectory]
+    metadata: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        self.state_names = tuple(self.state_names)
+        self.input_names = tuple(self.input_names)
+        names = self.state_names + self.input_names
+        if len(set(names)) != len(names) or any(n in ("traj", "t") for n in names):
+            raise DataError(f"signal names must be unique and not 'traj' or 't': {list(names)}")
+        for traj in self.trajectories:
+            if traj.x.shape[1] != len(self.state_names) or traj.u.shape[1] != len(self.input_names):
+                raise DataError(
+                    f"trajectory {traj.traj_id}: {traj.x.shape[1]} states / {traj.u.shape[1]} inputs, "
+                    f"expected {len(self.state_names)} / {len(self.input_names)}"
+                )
+
+    def __len__(self) -> int:
+        return len(self.trajectories)
+
+    def __iter__(self):
+        return iter(self.trajectories)
+
+    @property
+    def dt(self) -> float:
+        """Sample period (s), from the metadata or the first trajectory."""
+        if "dt" in self.metadata:
+            return float(self.metadata["dt"])
+        for traj in self.trajectories:
+            if len(traj) > 1:
+                return float(np.median(np.diff(traj.t)))
+        raise DataError("cannot tell the sample period of a dataset without a trajectory of two samples")
+
+    @property
+    def n_samples(self) -> int:
+        return sum(len(traj) for traj in self.trajectories)
+
+    def state_index(self, names: Iterable[str]) -> list[int]:
+        """Column indices of the named states (DataError names a missing one)."""
+        out = []
+        for name in names:
+            if name not in self.state_names:
+                raise DataError(f"no state named {name!r}; states are {list(self.state_names)}")
+            out.append(self.state_names.index(name))
+        return out
+
+    def select(self, traj_ids: Sequence[int]) -> "Dataset":
+        """A dataset with only the given trajectory ids (same names and metadata)."""
+        wanted = set(traj_ids)
+        return Dataset(self.state_names, self.input_names,
+                       [tr for tr in self.trajectories if tr.traj_id in wanted], dict(self.metadata))
+
+    def summary(self) -> dict[str, Any]:
+        """Counts, duration, sample period and per-signal ranges (for `pisml data info`)."""
+        if not self.trajectories:
+            return {"trajectories": 0, "samples": 0, "states": list(self.state_names),
+                    "inputs": list(self.input_names)}
+        x = np.concatenate([tr.x for tr in self.trajectories])
+        u = np.concatenate([tr.u for tr in self.trajectories])
+        ranges = {name: [float(col.min()), float(col.max())]
+                  for name, col in zip(self.state_names + self.input_names, np.concatenate([x, u], axis=1).T)}
+        return {
+            "trajectories": len(self.trajectories),
+            "trajectory_ids": [tr.traj_id for tr in self.trajectories],
+            "samples": self.n_samples,
+            "dt": self.dt,
+            "durations": [float(tr.t[-1] - tr.t[0]) if len(tr) else 0.0 for tr in self.trajectories],
+            "states": list(self.state_names),
+            "inputs": list(self.input_names),
+            "ranges": ranges,
+            "metadata": self.metadata,
+        }
+
+
+def check_sampling(traj: Trajectory, dt: float, source: str, rtol: float = 0.01) -> None:
+    """Reject non-increasing or irregular sample times; the message names source and sample."""
+    if len(traj) < 2:
+        return
+    steps = np.diff(traj.t)
+    bad = np.flatnonzero(steps <= 0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise DataError(f"{source}: trajectory {traj.traj_id}: t not increasing at sample {k} "
+                        f"(t={traj.t[k]!r} after {traj.t[k - 1]!r})")
+    irregular = np.flatnonzero(np.abs(steps - dt) > rtol * dt)
+    if irregular.size:
+        k = int(irregular[0]) + 1
+        raise DataError(f"{source}: trajectory {traj.traj_id}: irregular sampling at sample {k}: step "
+                        f"{steps[k - 1]:.6g} s, expected {dt:.6g} s (tolerance {rtol:.0%})")
