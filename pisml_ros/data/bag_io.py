@@ -173,10 +173,11 @@ def read_bag(path: str | Path, topic: str | None = None, sampling_rtol: float = 
                             f"{' on ' + topic if topic else ''} (topics: {found})")
         info_conns = [c for c in reader.connections if c.topic == INFO_TOPIC and c.msgtype == STRING_TYPE]
         meta = {}
-        for _, _, raw in reader.messages(connections=info_conns):
+        # (an empty connection list would mean "all messages" to rosbags)
+        for _, _, raw in reader.messages(connections=info_conns) if info_conns else ():
             try:
                 meta = json.loads(store.deserialize_cdr(raw, STRING_TYPE).data)
-            except (ValueError, TypeError):
+            except Exception:  # metadata is optional: a bad one is ignored, the data still reads
                 meta = {}
         batches = {}
         names = None

@@ -177,6 +177,8 @@ def _parse_numbers(path: Path, text: str, header: list[str]) -> np.ndarray:
     """Parse the body into floats; on failure locate the first bad row and column."""
     n_cols = len(header)
     body = text.split("\n", 1)[1] if "\n" in text else ""
+    if not body.strip():
+        raise DataError(f"{path}: no data rows")
     try:
         with np.errstate(all="ignore"):
             values = np.loadtxt(io.StringIO(body), delimiter=",", ndmin=2, dtype=float)

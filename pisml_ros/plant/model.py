@@ -97,7 +97,24 @@ class InverterPlant:
 
     # ------------------------------------------------------------------ vector field
     def vector_field(self, x, u):
-        """Time derivative of the full state.
+        """Time derivative of the full state (see :meth:`evaluate`)."""
+        return self.evaluate(x, u)[0]
+
+    def internal_signals(self, x, u) -> dict:
+        """Controller and circuit signals the measurements don't show directly.
+
+        Returns
+        -------
+        dict of ndarray
+            ``w`` (droop frequency), ``p``, ``q`` (instantaneous powers), ``vo_d/q``
+            (output voltage), ``ilref_d/q`` (current reference after limiting),
+            ``ilref_unlimited_d/q``, ``vi_d/q`` (inverter voltage applied to the
+            filter), ``vref_d/q`` (voltage reference after virtual impedance).
+        """
+        return self.evaluate(x, u)[1]
+
+    def evaluate(self, x, u):
+        """Time derivative of the full state, and the internal signals.
 
         Parameters
         ----------
@@ -108,8 +125,10 @@ class InverterPlant:
 
         Returns
         -------
-        ndarray, shape (..., n_states)
+        dxdt : ndarray, shape (..., n_states)
             dx/dt in 1/s.
+        signals : dict of ndarray
+            See :meth:`internal_signals`.
         """
         p, c, eff = self.params, self.circuit, self.effects
         x = np.asarray(x)
@@ -153,6 +172,7 @@ class InverterPlant:
         ilr_d = p.F * ig_d - w * p.Cf * vo_q + p.KpV * ev_d + p.KiV * phi_d
         ilr_q = p.F * ig_q + w * p.Cf * vo_d + p.KpV * ev_q + p.KiV * phi_q
         d_phi_d, d_phi_q = ev_d, ev_q
+        ilr_free_d, ilr_free_q = ilr_d, ilr_q
         if "current_limit" in eff:
             cl = eff["current_limit"]
             sat_d, sat_q = _limit_magnitude(ilr_d, ilr_q, cl["imax"])
@@ -196,11 +216,15 @@ class InverterPlant:
         d_ig_d = wb / c["Lg"] * (vo_d - vg_d - c["Rg"] * ig_d) + wb * w * ig_q
         d_ig_q = wb / c["Lg"] * (vo_q - vg_q - c["Rg"] * ig_q) - wb * w * ig_d
 
-        return np.stack(
+        dxdt = np.stack(
             [d_delta, d_Pf, d_Qf, d_phi_d, d_phi_q, d_gam_d, d_gam_q,
              d_il_d, d_il_q, d_vc_d, d_vc_q, d_ig_d, d_ig_q, *extra],
             axis=-1,
         )
+        signals = {"w": w, "p": p_inst, "q": q_inst, "vo_d": vo_d, "vo_q": vo_q, "vref_d": vref_d,
+                   "vref_q": vref_q, "ilref_d": ilr_d, "ilref_q": ilr_q, "ilref_unlimited_d": ilr_free_d,
+                   "ilref_unlimited_q": ilr_free_q, "vi_d": vi_d, "vi_q": vi_q}
+        return dxdt, signals
 
     # ------------------------------------------------------------------ linearisation
     def jacobian(self, x, u, wrt: str = "x") -> np.ndarray:
@@ -264,6 +288,13 @@ class InverterPlant:
         """
         u = np.array([ug, theta_g], dtype=float)
         starts = [x0] if x0 is not None else []
+        if self.effects:
+            # limiters can trap Newton far from the solution: start from the ideal plant's equilibrium
+            try:
+                ideal = InverterPlant(self.params).equilibrium(ug, theta_g, tol=tol)
+                starts.append(np.concatenate([ideal, np.zeros(self.n_states - N_MEASURED)]))
+            except EquilibriumError:
+                pass
         starts.append(self.initial_guess(ug, theta_g))
         for start in starts:
             x = self._solve(u, np.asarray(start, dtype=float), tol)

@@ -63,7 +63,7 @@ def training_schedules(n_traj: int = 12, seed: int = 0, duration: float = 0.04) 
     return schedules
 
 
-def test_schedules(duration: float = 0.04) -> list[Schedule]:
+def evaluation_schedules(duration: float = 0.04) -> list[Schedule]:
     """Paper test set: from ug = 1.0, a sag to 0.4 p.u. at t = 0.02 s (OOD window
     0.02–0.04 s); the second trajectory adds an 8° phase jump at 0.008 s inside the
     IOD window (0–0.02 s) so that window tests something."""
@@ -93,7 +93,7 @@ def schedules_for(scenario: str, seed: int = 0, n_traj: int | None = None, durat
         return training_schedules(n_traj or 12, seed, duration), duration
     if scenario == "test":
         duration = duration or 0.04
-        return test_schedules(duration), duration
+        return evaluation_schedules(duration), duration
     if scenario == "smallsignal":
         duration = duration or 0.1
         schedules = smallsignal_schedules()

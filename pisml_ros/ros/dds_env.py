@@ -40,9 +40,13 @@ def configure_loopback_dds(environ=None) -> dict:
         The environment that was updated.
     """
     env = os.environ if environ is None else environ
-    # An explicit non-local setting from a deployment wins; otherwise stay on loopback.
+    # A deployment across machines says so explicitly (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET, or
+    # PISML_DDS_LOOPBACK=0) and is left alone; everything else stays on loopback.
+    if env.get("PISML_DDS_LOOPBACK", "1") == "0":
+        return env
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    if env["ROS_AUTOMATIC_DISCOVERY_RANGE"] != "LOCALHOST":
+        return env
     if "FASTDDS_DEFAULT_PROFILES_FILE" not in env:
         profile = find_loopback_profile()
         if profile is not None:
