@@ -115,7 +115,7 @@ def test_bad_sidecar(tmp_path):
 def test_bad_bags(tmp_path, dataset):
     with pytest.raises(DataError, match="not a rosbag2 directory"):
         read_bag(tmp_path)
-    with pytest.raises(DataError, match="no such file"):
+    with pytest.raises(DataError, match="No such file"):
         read_dataset(tmp_path / "missing")
     bag = write_bag(dataset, tmp_path / "bag")
     with pytest.raises(DataError, match="no pisml_msgs/msg/MeasurementBatch messages on /other"):

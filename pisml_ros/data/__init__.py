@@ -19,7 +19,7 @@ def read_dataset(path, **kwargs) -> Dataset:
     if path.is_dir():
         return read_bag(path, **kwargs)
     if not path.exists():
-        raise DataError(f"{path}: no such file or directory")
+        raise DataError(f"{path}: No such file or directory")
     raise DataError(f"{path}: neither a .csv file nor a rosbag2 directory")
 
 

@@ -1,0 +1,31 @@
+# Two commands do everything on a fresh machine (Debian 12, Python 3.11):
+#   make demo   - the main job on the bundled default data
+#   make test   - the whole test suite (unit + topic-level integration, slow ones included)
+# Both create .venv first when it is missing (scripts/bootstrap_env.sh) and reuse it otherwise.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PYTEST_ARGS ?=
+
+.PHONY: env demo test test-fast bags clean
+
+env:
+	@bash scripts/bootstrap_env.sh
+
+demo: env
+	$(VENV)/bin/pisml demo --out out/demo
+
+test: env
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+# quick loop while developing: skips the tests marked slow
+test-fast: env
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+# the small demo recordings in bags/ (made by the project's own tools)
+bags: env
+	$(VENV)/bin/pisml simulate --scenario train --snr-db 40 --seed 0 --out bags/train_40dB
+	$(VENV)/bin/pisml simulate --scenario test --seed 0 --out bags/test_clean
+	$(VENV)/bin/pisml simulate --scenario smallsignal --snr-db 40 --seed 0 --out bags/smallsignal_40dB
+
+clean:
+	rm -rf build install log out .pytest_cache

@@ -1,0 +1,96 @@
+"""The `pisml` command as a user runs it: outputs, exit statuses, one-line errors."""
+import csv
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pisml_ros.signals import INPUT_NAMES, STATE_NAMES
+
+
+def pisml(*args, check=True):
+    proc = subprocess.run([sys.executable, "-m", "pisml_ros.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=300)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"pisml {' '.join(map(str, args))} failed ({proc.returncode}): {proc.stderr}")
+    return proc
+
+
+def test_simulate_csv_opens_in_a_plain_csv_reader(tmp_path):
+    out = tmp_path / "train.csv"
+    pisml("simulate", "--scenario", "train", "--snr-db", "40", "--seed", "3", "--n-traj", "2", "--out", out)
+    with open(out, newline="") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["traj", "t", *STATE_NAMES, *INPUT_NAMES]
+    assert len(rows) == 1 + 2 * 401
+    side = json.loads(out.with_suffix(".json").read_text())
+    assert side["snr_db"] == 40 and side["seed"] == 3 and side["dt"] == 1e-4
+
+
+def test_simulate_bag_with_effect_and_info(tmp_path):
+    bag = tmp_path / "sag_bag"
+    pisml("simulate", "--scenario", "test", "--effect", "current_limit", "--effect-param", "current_limit.imax=1.3",
+          "--out", bag)
+    assert (bag / "metadata.yaml").is_file()
+    info = json.loads(pisml("data", "info", bag, "--json").stdout)
+    assert info["trajectories"] == 2 and info["metadata"]["effects"]["current_limit"]["imax"] == 1.3
+    text = pisml("data", "info", bag).stdout
+    assert "2 trajectories" in text and "ig_q" in text
+
+
+def test_analyse_plant_json():
+    report = json.loads(pisml("analyse", "--model", "plant", "--ug", "0.8", "--theta-g", "0", "--json").stdout)
+    assert set(report) >= {"operating_point", "eigenvalues", "damping", "max_real", "stable"}
+    eig = np.array([complex(re, im) for re, im in report["eigenvalues"]])
+    assert len(eig) == 13 and report["stable"] is True
+    assert np.min(np.abs(eig - complex(-653.40, 9760.44))) < 0.5
+    unstable = json.loads(pisml("analyse", "--ug", "1.2", "--json").stdout)
+    assert unstable["stable"] is False and unstable["max_real"] == pytest.approx(0.255, abs=1e-3)
+
+
+def test_analyse_with_params_file_and_margin(tmp_path):
+    params = tmp_path / "p.yaml"
+    params.write_text("Lg: 0.06\n")
+    text = pisml("analyse", "--params", params, "--ug", "0.8", "--margin").stdout
+    assert "STABLE" in text and "stability boundaries in ug" in text
+
+
+@pytest.mark.parametrize("args, message", [
+    (["data", "info", "{bad_csv}"], "row 3, column b: not a number"),
+    (["data", "info", "{missing}"], "No such file or directory"),
+    (["analyse", "--params", "{bad_params}", "--ug", "0.8"], "unknown parameter(s) ['Lx']"),
+    (["analyse", "--ug", "-1"], "--ug must be > 0"),
+    (["simulate", "--scenario", "train", "--effect-param", "current_limit.imax=abc", "--out", "{out}"],
+     "current_limit: parameter imax: not a number"),
+    (["simulate", "--scenario", "train", "--effect-param", "delay.order=5", "--out", "{out}"],
+     "order must be 1 or 2"),
+])
+def test_user_errors_are_one_line_with_status_2(tmp_path, args, message):
+    bad_csv = tmp_path / "bad.csv"
+    bad_csv.write_text("traj,t,a,b,ug,theta_g\n0,0,1,2,1,0\n0,0.0001,1,x,1,0\n")
+    bad_params = tmp_path / "bad.yaml"
+    bad_params.write_text("Lx: 1\n")
+    fill = dict(bad_csv=bad_csv, missing=tmp_path / "nope.csv", bad_params=bad_params, out=tmp_path / "o.csv")
+    proc = pisml(*[a.format(**fill) for a in args], check=False)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pisml: error: ") and message in lines[0]
+
+
+def test_effects_listing():
+    text = pisml("effects").stdout
+    for name in ("current_limit", "current_clamp", "voltage_limit", "delay", "virtual_impedance", "param_drift",
+                 "frequency_limit"):
+        assert name in text
+
+
+def test_demo_writes_its_report(tmp_path):
+    proc = pisml("demo", "--out", tmp_path / "demo")
+    assert "stability boundary in grid voltage: ug = 1.16" in proc.stdout
+    report = json.loads((tmp_path / "demo" / "stability.json").read_text())
+    assert report["operating_points"]["1.2"]["stable"] is False
+    for name in ("eigenvalues.png", "stability_scan.png", "test_trajectories.png"):
+        assert (tmp_path / "demo" / name).stat().st_size > 10_000
