@@ -58,7 +58,10 @@ class MeasurementNode(Node):
         self.batch_size = declare(self, "batch_size", 100, "samples per MeasurementBatch", 1, 10000)
         self.loop = declare(self, "loop", False, "start again when the data is exhausted")
         self.exit_when_done = declare(self, "exit_when_done", False, "shut the node down after the last batch")
-        self.start_delay = declare(self, "start_delay", 0.5, "seconds to wait before the first batch (discovery)",
+        self.wait_for_subscribers = declare(
+            self, "wait_for_subscribers", 1, "hold the first batch until this many subscribers are matched "
+            "(reliable delivery starts at the match; 0 = don't wait)", 0, 1000)
+        self.start_delay = declare(self, "start_delay", 0.5, "seconds to wait after that before the first batch",
                                    0.0, 60.0)
         depth = declare(self, "qos_depth", 5000, "depth of the reliable measurement queue", 10, 1000000)
 
@@ -92,6 +95,8 @@ class MeasurementNode(Node):
     def _tick(self):
         now = time.monotonic()
         if self.t_start is None:
+            if self.passes == 0 and self.publisher.get_subscription_count() < self.wait_for_subscribers:
+                return
             self.t_start = now + (self.start_delay if self.passes == 0 else 0.0)
         if now < self.t_start:
             return

@@ -1,0 +1,50 @@
+"""Helpers of the topic-level tests: start real node processes, spin a probe node until a condition."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+BIN = Path(sys.executable).parent
+
+
+def start_node(executable: str, *ros_args: str, log_dir: Path) -> subprocess.Popen:
+    """Start a node's console script as its own process (same DDS domain and loopback profile)."""
+    log = open(log_dir / f"{executable}.log", "w")
+    cmd = [str(BIN / executable)]
+    if ros_args:
+        cmd += ["--ros-args", *ros_args]
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
+    proc.log_path = log_dir / f"{executable}.log"
+    return proc
+
+
+def stop_node(proc: subprocess.Popen, timeout: float = 10.0) -> int:
+    """SIGINT, then wait; returns the exit status (kills after the timeout)."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            return proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            return -9
+    return proc.returncode
+
+
+def spin_until(node, condition, timeout: float, executor=None) -> bool:
+    """Spin ``node`` until ``condition()`` is true or ``timeout`` seconds pass."""
+    import rclpy
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if executor is not None:
+            executor.spin_once(timeout_sec=0.05)
+        else:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        if condition():
+            return True
+    return False
