@@ -8,7 +8,7 @@ import pytest
 from pisml_ros.plant import EFFECTS, InverterPlant, ParameterError, PlantParameters, load_parameters
 from pisml_ros.plant.effects import parse_effect_assignments
 from pisml_ros.plant.scenarios import generate, schedules_for, evaluation_schedules
-from pisml_ros.plant.simulate import simulate
+from pisml_ros.integrate import simulate
 
 # computed by an independent implementation of the same conventions (issue 2)
 REFERENCE_UG08 = [complex(-653.40, 9760.44), complex(-650.68, 9146.73), complex(-196.62, 143.96), -33.06,

@@ -15,7 +15,7 @@ import numpy as np
 from .. import __version__
 from ..data import Dataset, Trajectory
 from ..signals import SAMPLE_RATE_HZ
-from .simulate import simulate
+from ..integrate import simulate
 
 SCENARIOS = ("train", "test", "smallsignal")
 

@@ -1,4 +1,4 @@
-"""Time-domain simulation of the virtual HIL at the measurement rate.
+"""Time-domain simulation of dynamic systems (the virtual HIL, explicit models) at the measurement rate.
 
 Inputs are applied as a zero-order hold of their samples (as a digital HIL
 does), so input steps sit on sample boundaries and no solver step straddles one.
