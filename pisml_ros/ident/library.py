@@ -1,0 +1,95 @@
+"""Candidate-term libraries, as term strings (the term names of the explicit model JSON).
+
+- :func:`physics_library` Θ(x, u): constant, states, p and q from the voltage/current
+  pair, grid terms ug·cos(θg − δ) and ug·sin(θg − δ).
+- :func:`extended_library` Θ_ext for distillation: monomials of degree 2 (optionally 3)
+  over the power, voltage and current signals (bilinear current×current and
+  voltage×current products included), trigonometric terms of the angle, and
+  optional rational and saturation-type candidates.
+- :func:`monomial_basis` rewrites a library into monomials so that merged models
+  have no collinear columns (p = v_d·i_d + v_q·i_q becomes its two monomials).
+"""
+from __future__ import annotations
+
+import itertools
+from typing import Sequence
+
+import sympy
+
+from ..model.expressions import parse_term
+from .roles import SignalRoles
+
+
+def grid_terms(roles: SignalRoles) -> list[str]:
+    if roles.angle and roles.grid_magnitude and roles.grid_phase:
+        m, ph, a = roles.grid_magnitude, roles.grid_phase, roles.angle
+        return [f"{m}*cos({ph} - {a})", f"{m}*sin({ph} - {a})"]
+    return []
+
+
+def power_terms(roles: SignalRoles) -> list[str]:
+    (vd, vq), (idd, iq) = roles.voltage, roles.current
+    return [f"{vd}*{idd} + {vq}*{iq}", f"{vq}*{idd} - {vd}*{iq}"]
+
+
+def physics_library(roles: SignalRoles, states: Sequence[str], integral_states: bool = True) -> list[str]:
+    """Θ(x, u): ``1``, the states, p, q, and the grid terms.
+
+    Parameters
+    ----------
+    integral_states : bool
+        Include the controller integrator states (the paper's optional integral states).
+    """
+    skip = set() if integral_states else set(roles.integrators)
+    return ["1", *[s for s in states if s not in skip], *power_terms(roles), *grid_terms(roles)]
+
+
+def extended_library(roles: SignalRoles, states: Sequence[str], degree: int = 2, trig: bool = True,
+                     rational: bool = False, saturation: bool = False) -> list[str]:
+    """Θ_ext: ``1``, states, products of the electrical signals up to ``degree``, angle trig terms,
+    and (optionally) rational ``s/(1 + s**2)`` and saturation ``tanh(s)`` candidates of the currents."""
+    elec = roles.electrical()
+    terms = ["1", *states]
+    for d in range(2, degree + 1):
+        terms += ["*".join(combo) for combo in itertools.combinations_with_replacement(elec, d)]
+    if trig:
+        terms += grid_terms(roles)
+        if roles.angle:
+            terms += [f"sin({roles.angle})", f"cos({roles.angle})"]
+    currents = list(roles.current) + [s for pair in roles.other_currents for s in pair]
+    if rational:
+        terms += [f"{s}/(1 + {s}**2)" for s in currents]
+    if saturation:
+        terms += [f"tanh({s})" for s in currents]
+    return list(dict.fromkeys(terms))
+
+
+def monomial_basis(terms: Sequence[str], signals: Sequence[str]) -> tuple[list[str], "sympy.Matrix"]:
+    """Split each term into monomials (products of signals and non-polynomial factors).
+
+    Returns
+    -------
+    basis : list of str
+        Distinct monomials, in order of first appearance.
+    mapping : ndarray, shape (n_terms, n_basis)
+        terms = mapping @ basis (so coefficients over ``terms`` become ``mapping.T @ c``).
+    """
+    import numpy as np
+
+    basis: list = []
+    rows = []
+    for text in terms:
+        expr = sympy.expand(parse_term(text, signals))
+        row = {}
+        for part in sympy.Add.make_args(expr):
+            coeff, rest = part.as_coeff_Mul()
+            key = sympy.sstr(rest) if rest != 1 else "1"
+            if key not in basis:
+                basis.append(key)
+            row[key] = row.get(key, 0.0) + float(coeff)
+        rows.append(row)
+    mapping = np.zeros((len(terms), len(basis)))
+    for i, row in enumerate(rows):
+        for key, value in row.items():
+            mapping[i, basis.index(key)] = value
+    return basis, mapping

@@ -1,0 +1,31 @@
+"""Noise level of measured channels, estimated from the data itself."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..data import Dataset
+
+
+def estimate_noise_std(dataset: Dataset, min_samples: int = 8) -> np.ndarray:
+    """Per-state noise standard deviation.
+
+    Where a trajectory starts in steady state (inputs constant over its first
+    samples), the first differences there are pure noise: σ = std(Δx)/√2. Without
+    such a segment, the second difference bounds it from above: σ ≈ std(Δ²x)/√6.
+
+    Returns
+    -------
+    ndarray, shape (n_states,)
+    """
+    flat_diffs = []
+    for tr in dataset:
+        changes = np.flatnonzero(np.any(np.diff(tr.u, axis=0) != 0, axis=1))
+        end = int(changes[0]) + 1 if changes.size else len(tr)
+        if end >= min_samples:
+            flat_diffs.append(np.diff(tr.x[:end], axis=0))
+    if flat_diffs:
+        d = np.concatenate(flat_diffs)
+        # the slow drift of a not-quite-steady start is removed by the median of the differences
+        return np.std(d - np.median(d, axis=0), axis=0) / np.sqrt(2.0)
+    d2 = np.concatenate([np.diff(tr.x, n=2, axis=0) for tr in dataset if len(tr) > 2])
+    return np.std(d2, axis=0) / np.sqrt(6.0)

@@ -1,0 +1,84 @@
+"""Signal roles: which column is the angle, the dq voltage/current pairs, the grid inputs...
+
+Configuration, not code: another inverter type with other names is identified by
+giving its roles (YAML ``roles:`` section or :meth:`SignalRoles.from_mapping`).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Mapping, Sequence
+
+
+class RoleError(ValueError):
+    """Roles that name signals the data does not have, or are malformed."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SignalRoles:
+    """Roles of the signals of one inverter.
+
+    Attributes
+    ----------
+    angle : str or None
+        Angle of the inverter frame relative to the grid.
+    grid_magnitude, grid_phase : str or None
+        Grid voltage inputs (grid terms are ``mag*cos(phase - angle)``, ``mag*sin(phase - angle)``).
+    voltage : (str, str)
+        dq voltage pair used for the power terms.
+    current : (str, str)
+        dq current pair used for the power terms (p = v_d·i_d + v_q·i_q, q = v_q·i_d − v_d·i_q).
+    other_currents : tuple of (str, str)
+        Further dq current pairs (enter the products of the extended library).
+    power : tuple of str
+        Filtered-power (droop) states.
+    integrators : tuple of str
+        Controller integrator states.
+    """
+
+    angle: str | None = "delta"
+    grid_magnitude: str | None = "ug"
+    grid_phase: str | None = "theta_g"
+    voltage: tuple = ("vc_d", "vc_q")
+    current: tuple = ("ig_d", "ig_q")
+    other_currents: tuple = (("il_d", "il_q"),)
+    power: tuple = ("Pf", "Qf")
+    integrators: tuple = ("phi_d", "phi_q", "gamma_d", "gamma_q")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping) -> "SignalRoles":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise RoleError(f"roles: unknown key(s) {unknown}; known: {sorted(known)}")
+        clean = dict(values)
+        for key in ("voltage", "current"):
+            if key in clean:
+                clean[key] = tuple(clean[key])
+        if "other_currents" in clean:
+            clean["other_currents"] = tuple(tuple(pair) for pair in clean["other_currents"])
+        for key in ("power", "integrators"):
+            if key in clean:
+                clean[key] = tuple(clean[key])
+        return cls(**clean)
+
+    def check(self, states: Sequence[str], inputs: Sequence[str]) -> None:
+        """Raise RoleError naming any role signal the data lacks."""
+        names = set(states) | set(inputs)
+        wanted = [self.angle, self.grid_magnitude, self.grid_phase, *self.voltage, *self.current,
+                  *(s for pair in self.other_currents for s in pair), *self.power, *self.integrators]
+        missing = [w for w in wanted if w is not None and w not in names]
+        if missing:
+            raise RoleError(f"roles name signals the data does not have: {missing} (signals: {sorted(names)})")
+        for key in ("voltage", "current"):
+            if len(getattr(self, key)) != 2:
+                raise RoleError(f"roles: {key} must be a dq pair, got {getattr(self, key)}")
+
+    def electrical(self) -> list[str]:
+        """Power states and all dq voltage/current signals (the factors of the product terms)."""
+        out = list(self.power) + list(self.voltage) + list(self.current)
+        for pair in self.other_currents:
+            out += list(pair)
+        return list(dict.fromkeys(out))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)

@@ -1,0 +1,298 @@
+"""ExplicitModel: d(state_j)/dt = Σ_k coefficients[k, j] · terms[k], as data.
+
+The JSON form (``"format": "pisml-explicit-model/1"``, DESIGN.md) holds the
+names, the term strings and the n_terms × n_states coefficient matrix; anyone
+can rebuild f(x, u) from it. Loading parses the terms with a whitelist (no eval).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import scipy.optimize
+import sympy
+
+from ..data import Dataset, Trajectory
+from ..integrate import simulate
+from .expressions import ExpressionError, term_set
+
+FORMAT = "pisml-explicit-model/1"
+
+
+class ModelFormatError(ValueError):
+    """A model file that does not follow the explicit model contract; the message says where."""
+
+
+class EquilibriumNotFound(RuntimeError):
+    """No equilibrium of the model at the requested inputs."""
+
+
+class ExplicitModel:
+    """An explicit ODE model over named states and inputs.
+
+    Parameters
+    ----------
+    states, inputs : sequence of str
+    terms : sequence of str
+        sympy-parsable expressions over the state and input names.
+    coefficients : array_like, shape (n_terms, n_states)
+        In 1/s: d(state_j)/dt = Σ_k coefficients[k, j] · terms[k].
+    metadata : dict, optional
+        Provenance, fit metrics, and ``reference_points`` (a list of
+        ``{"inputs": [...], "state": [...]}``) used to start equilibrium searches.
+    """
+
+    def __init__(self, states: Sequence[str], inputs: Sequence[str], terms: Sequence[str], coefficients,
+                 metadata: dict | None = None):
+        self.state_names = tuple(states)
+        self.input_names = tuple(inputs)
+        self.terms = list(terms)
+        self.coefficients = np.array(coefficients, dtype=float).reshape(len(self.terms), len(self.state_names))
+        self.metadata = dict(metadata or {})
+        self.hidden_state_names = ()
+        self._terms = term_set(self.terms, self.state_names + self.input_names)
+
+    # ---------------------------------------------------------------- evaluation
+    @property
+    def n_states(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def n_parameters(self) -> int:
+        """Nonzero coefficients."""
+        return int(np.count_nonzero(self.coefficients))
+
+    def _stack(self, x, u):
+        x = np.asarray(x, dtype=float)
+        u = np.asarray(u, dtype=float)
+        lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        return np.concatenate([np.broadcast_to(x, lead + x.shape[-1:]), np.broadcast_to(u, lead + u.shape[-1:])],
+                              axis=-1)
+
+    def features(self, x, u) -> np.ndarray:
+        """Term values, shape (..., n_terms)."""
+        return self._terms.evaluate(self._stack(x, u))
+
+    def vector_field(self, x, u) -> np.ndarray:
+        """dx/dt, shape (..., n_states)."""
+        return self.features(x, u) @ self.coefficients
+
+    def jacobian(self, x, u, wrt: str = "x") -> np.ndarray:
+        """Analytic Jacobian (sympy derivatives of the terms) at one point."""
+        grad = self._terms.gradient(self._stack(x, u))  # (n_terms, n_signals)
+        block = grad[:, :self.n_states] if wrt == "x" else grad[:, self.n_states:]
+        return self.coefficients.T @ block
+
+    # ---------------------------------------------------------------- operating points
+    def equilibrium(self, *inputs: float, x0=None, tol: float = 1e-9) -> np.ndarray:
+        """Equilibrium f(x, u) = 0 at the given input values (in ``input_names`` order).
+
+        Starts from ``x0`` or from the stored reference point whose inputs are
+        nearest, then follows the inputs from there in small steps (continuation).
+        """
+        u = np.array(inputs, dtype=float)
+        if u.shape != (len(self.input_names),):
+            raise ValueError(f"equilibrium needs {len(self.input_names)} input values {self.input_names}, got {inputs}")
+        starts = []
+        if x0 is not None:
+            starts.append((u, np.asarray(x0, dtype=float)))
+        refs = self.metadata.get("reference_points") or []
+        refs = sorted(refs, key=lambda r: float(np.linalg.norm(np.asarray(r["inputs"]) - u)))
+        starts += [(np.asarray(r["inputs"], dtype=float), np.asarray(r["state"], dtype=float)) for r in refs[:3]]
+        if not starts:
+            starts.append((u, np.zeros(self.n_states)))
+        for u_start, x_start in starts:
+            x = x_start
+            for level in np.linspace(0.0, 1.0, 1 if np.allclose(u_start, u) else 21):
+                x = self._solve(u_start + level * (u - u_start), x, tol)
+                if x is None:
+                    break
+            if x is not None:
+                return x
+        raise EquilibriumNotFound(f"no equilibrium of the model at {dict(zip(self.input_names, u.tolist()))}")
+
+    def _solve(self, u, start, tol):
+        sol = scipy.optimize.root(lambda x: self.vector_field(x, u), start, jac=lambda x: self.jacobian(x, u),
+                                  method="hybr", options={"xtol": 1e-12})
+        if not np.all(np.isfinite(sol.x)):
+            return None
+        scale = np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0)
+        residual = np.max(np.abs(self.vector_field(sol.x, u)) / scale)
+        return sol.x if residual < tol else None
+
+    def eigenvalues(self, *inputs: float) -> np.ndarray:
+        """Eigenvalues (1/s) at the equilibrium for the given inputs."""
+        return np.linalg.eigvals(self.jacobian(self.equilibrium(*inputs), np.array(inputs, dtype=float)))
+
+    # ---------------------------------------------------------------- simulation
+    def simulate(self, dataset: Dataset, substeps: int = 4, method: str = "rk4") -> Dataset:
+        """Replay each trajectory's measured inputs from its measured initial state.
+
+        Returns
+        -------
+        Dataset
+            Predicted states on the same time grid (non-finite after a divergence).
+        """
+        if tuple(dataset.state_names) != self.state_names or tuple(dataset.input_names) != self.input_names:
+            cols = dataset.state_index(self.state_names)
+            missing = [n for n in self.input_names if n not in dataset.input_names]
+            if missing:
+                raise ValueError(f"dataset lacks the model's input(s) {missing}")
+            icols = [dataset.input_names.index(n) for n in self.input_names]
+        else:
+            cols, icols = list(range(self.n_states)), list(range(len(self.input_names)))
+        out = []
+        groups: dict[int, list[Trajectory]] = {}
+        for tr in dataset:
+            groups.setdefault(len(tr), []).append(tr)
+        results = {}
+        for n, trs in groups.items():
+            x0 = np.stack([tr.x[0, cols] for tr in trs])
+            u = np.stack([tr.u[:, icols] for tr in trs])
+            try:
+                with np.errstate(all="ignore"):
+                    pred = simulate(self, x0, u, dataset.dt, method=method, substeps=substeps)
+            except FloatingPointError:
+                pred = self._simulate_each(x0, u, dataset.dt, substeps)
+            for tr, p in zip(trs, pred):
+                results[id(tr)] = p
+        for tr in dataset:
+            out.append(Trajectory(tr.traj_id, tr.t.copy(), results[id(tr)], tr.u[:, icols]))
+        return Dataset(self.state_names, self.input_names, out, {"dt": dataset.dt, "source": "simulation"})
+
+    def _simulate_each(self, x0, u, dt, substeps):
+        preds = []
+        for k in range(x0.shape[0]):
+            try:
+                with np.errstate(all="ignore"):
+                    preds.append(simulate(self, x0[k], u[k], dt, substeps=substeps))
+            except FloatingPointError:
+                preds.append(np.full((u.shape[1], self.n_states), np.nan))
+        return np.stack(preds)
+
+    # ---------------------------------------------------------------- symbolic views
+    def equations(self, digits: int = 6, threshold: float = 0.0) -> list[str]:
+        """Readable equations, one per state: ``d(x)/dt = c1*term1 + ...``."""
+        lines = []
+        for j, name in enumerate(self.state_names):
+            parts = []
+            for k, term in enumerate(self.terms):
+                c = self.coefficients[k, j]
+                if c == 0 or abs(c) <= threshold:
+                    continue
+                coef = f"{c:.{digits}g}"
+                parts.append(coef if term == "1" else f"{coef}*({term})" if any(ch in term for ch in "+- ")
+                             else f"{coef}*{term}")
+            rhs = " + ".join(parts).replace("+ -", "- ") or "0"
+            lines.append(f"d({name})/dt = {rhs}")
+        return lines
+
+    def sympy_equations(self) -> list[sympy.Expr]:
+        """The right-hand sides as sympy expressions."""
+        exprs = self._terms.exprs
+        return [sum((sympy.Float(self.coefficients[k, j]) * exprs[k] for k in range(len(exprs))
+                     if self.coefficients[k, j] != 0), sympy.Integer(0)) for j in range(self.n_states)]
+
+    def latex(self, digits: int = 4) -> list[str]:
+        """LaTeX of each equation."""
+        out = []
+        for name, rhs in zip(self.state_names, self.sympy_equations()):
+            rhs = rhs.xreplace({f: sympy.Float(f, digits) for f in rhs.atoms(sympy.Float)})
+            out.append(rf"\dot{{{sympy.latex(sympy.Symbol(name))}}} = {sympy.latex(rhs)}")
+        return out
+
+    def monomial_count(self) -> int:
+        """Nonzero coefficients when the equations are expanded into monomials."""
+        count = 0
+        for rhs in self.sympy_equations():
+            expanded = sympy.expand(rhs)
+            count += len(expanded.as_ordered_terms()) if expanded != 0 else 0
+        return count
+
+    # ---------------------------------------------------------------- JSON
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": FORMAT,
+            "states": list(self.state_names),
+            "inputs": list(self.input_names),
+            "terms": list(self.terms),
+            "coefficients": self.coefficients.tolist(),
+            "equations": self.equations(),
+            "metadata": _jsonable(self.metadata),
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=1)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the JSON atomically (a temporary file renamed over the target)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+        try:
+            with os.fdopen(fd, "w") as fh:
+                fh.write(self.to_json() + "\n")
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "model") -> "ExplicitModel":
+        if not isinstance(data, dict):
+            raise ModelFormatError(f"{source}: expected a JSON object")
+        if data.get("format") != FORMAT:
+            raise ModelFormatError(f"{source}: field format must be {FORMAT!r}, got {data.get('format')!r}")
+        for key in ("states", "inputs", "terms", "coefficients"):
+            if key not in data:
+                raise ModelFormatError(f"{source}: missing field {key!r}")
+        states, inputs, terms = data["states"], data["inputs"], data["terms"]
+        for key, value in (("states", states), ("inputs", inputs), ("terms", terms)):
+            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+                raise ModelFormatError(f"{source}: field {key} must be a list of strings")
+        try:
+            coefficients = np.array(data["coefficients"], dtype=float)
+        except (TypeError, ValueError):
+            raise ModelFormatError(f"{source}: field coefficients must be a numeric matrix") from None
+        if coefficients.shape != (len(terms), len(states)):
+            raise ModelFormatError(f"{source}: field coefficients has shape {coefficients.shape}, expected "
+                                   f"n_terms x n_states = ({len(terms)}, {len(states)})")
+        if not np.all(np.isfinite(coefficients)):
+            raise ModelFormatError(f"{source}: field coefficients contains NaN/inf")
+        try:
+            return cls(states, inputs, terms, coefficients, data.get("metadata") or {})
+        except ExpressionError as err:
+            raise ModelFormatError(f"{source}: field terms: {err}") from None
+
+    @classmethod
+    def load(cls, path: str | Path) -> "ExplicitModel":
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except OSError as err:
+            raise ModelFormatError(f"{path}: cannot read model ({err.strerror})") from None
+        except json.JSONDecodeError as err:
+            raise ModelFormatError(f"{path}: not valid JSON ({err.msg} at line {err.lineno})") from None
+        return cls.from_dict(data, source=str(path))
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj

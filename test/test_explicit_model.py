@@ -1,0 +1,90 @@
+"""ExplicitModel: the JSON contract, safe loading, evaluation against the plant it was fitted to."""
+import json
+
+import numpy as np
+import pytest
+
+from pisml_ros.ident.library import extended_library, monomial_basis, physics_library
+from pisml_ros.ident.roles import SignalRoles
+from pisml_ros.model import ExplicitModel, ModelFormatError
+from pisml_ros.plant import InverterPlant
+from pisml_ros.plant.scenarios import generate, schedules_for
+from pisml_ros.signals import INPUT_NAMES, STATE_NAMES
+
+
+@pytest.fixture(scope="module")
+def truth():
+    """The plant written exactly in the monomial basis of Θ ∪ Θ_ext (least squares on its vector field)."""
+    plant = InverterPlant()
+    roles = SignalRoles()
+    basis, _ = monomial_basis(physics_library(roles, STATE_NAMES) + extended_library(roles, STATE_NAMES),
+                              STATE_NAMES + INPUT_NAMES)
+    schedules, duration = schedules_for("train", seed=0)
+    data = generate(plant, schedules, duration)
+    x = np.concatenate([tr.x for tr in data])
+    u = np.concatenate([tr.u for tr in data])
+    model = ExplicitModel(STATE_NAMES, INPUT_NAMES, basis, np.zeros((len(basis), 13)))
+    theta = model.features(x, u)
+    coef = np.linalg.lstsq(theta, plant.vector_field(x, u), rcond=None)[0]
+    coef[np.abs(coef) < 1e-7] = 0.0
+    ref = [{"inputs": [1.0, 0.0], "state": plant.equilibrium(1.0).tolist()}]
+    return ExplicitModel(STATE_NAMES, INPUT_NAMES, basis, coef, {"reference_points": ref}), plant
+
+
+def test_true_model_in_the_monomial_basis(truth):
+    model, plant = truth
+    assert model.n_parameters == 88  # the issue's "about 88" monomial coefficients
+    rng = np.random.default_rng(0)
+    x = plant.equilibrium(0.9) + 0.05 * rng.standard_normal(13)
+    assert np.allclose(model.vector_field(x, [0.85, 0.1]), plant.vector_field(x, [0.85, 0.1]), rtol=1e-6, atol=1e-5)
+    assert np.allclose(model.jacobian(x, [0.85, 0.1]), plant.jacobian(x, [0.85, 0.1]), rtol=1e-6, atol=1e-4)
+
+
+def test_equilibrium_eigenvalues_and_simulation_match_the_plant(truth):
+    model, plant = truth
+    for ug in (0.4, 0.8, 1.2):
+        assert np.allclose(np.sort_complex(model.eigenvalues(ug, 0.0)), np.sort_complex(plant.eigenvalues(ug)),
+                           rtol=1e-5, atol=1e-4)
+    schedules, duration = schedules_for("test")
+    data = generate(plant, schedules, duration)
+    pred = model.simulate(data)
+    for a, b in zip(pred, data):
+        assert np.linalg.norm(a.x - b.x) / np.linalg.norm(b.x) < 1e-6
+
+
+def test_json_round_trip_and_rebuild_without_the_package(tmp_path, truth):
+    model, _ = truth
+    path = model.save(tmp_path / "m.json")
+    data = json.loads(path.read_text())
+    assert data["format"] == "pisml-explicit-model/1"
+    assert np.array(data["coefficients"]).shape == (len(data["terms"]), len(data["states"]))
+    again = ExplicitModel.load(path)
+    assert np.array_equal(again.coefficients, model.coefficients) and again.terms == model.terms
+    # rebuild f(x, u) with plain sympy from the JSON alone
+    import sympy
+
+    names = data["states"] + data["inputs"]
+    syms = sympy.symbols(names)
+    terms = [sympy.sympify(t, locals=dict(zip(names, syms))) for t in data["terms"]]
+    f = sympy.lambdify(syms, (sympy.Matrix([terms]) * sympy.Matrix(data["coefficients"])), "numpy")
+    z = np.concatenate([model.metadata["reference_points"][0]["state"], [1.0, 0.0]])
+    assert np.allclose(np.ravel(f(*z)), model.vector_field(z[:13], z[13:]), atol=1e-9)
+    assert len(model.equations()) == 13 and model.latex()[0].startswith(r"\dot{\delta}")
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda d: d.update(format="other"), "field format"),
+    (lambda d: d.pop("terms"), "missing field 'terms'"),
+    (lambda d: d.update(terms=["__import__('os').system('x')"] + d["terms"][1:]), "only calls of"),
+    (lambda d: d.update(terms=["nope*delta"] + d["terms"][1:]), "unknown signal 'nope'"),
+    (lambda d: d.update(coefficients=d["coefficients"][:-1]), "expected n_terms x n_states"),
+    (lambda d: d["coefficients"][0].__setitem__(0, "x"), "numeric matrix"),
+])
+def test_bad_model_files_are_rejected(tmp_path, truth, mutate, message):
+    data = truth[0].to_dict()
+    data = json.loads(json.dumps(data))
+    mutate(data)
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ModelFormatError, match=message):
+        ExplicitModel.load(path)
