@@ -13,6 +13,9 @@ from typing import Any, Mapping
 
 from .parameters import PASSIVE_KEYS, ParameterError
 
+#: controller gains that `gain_mismatch` may change in the plant
+GAIN_KEYS = ("KpV", "KiV", "KpC", "KiC", "mp", "mq", "F", "wc")
+
 
 @dataclasses.dataclass(frozen=True)
 class EffectSpec:
@@ -77,6 +80,13 @@ EFFECTS: dict[str, EffectSpec] = {
             {key: f"actual {key} of the plant (p.u.)" for key in PASSIVE_KEYS},
         ),
         EffectSpec(
+            "gain_mismatch",
+            "the controller runs with gains that differ from its documentation "
+            "(values are the gains actually used; keys not given stay at nameplate)",
+            {},
+            {key: f"actual {key} of the controller" for key in GAIN_KEYS},
+        ),
+        EffectSpec(
             "frequency_limit",
             "limit of the droop frequency deviation: |w - wset| <= dw_max",
             {"dw_max": 0.005},
@@ -138,6 +148,10 @@ def resolve_effects(effects: Mapping[str, Mapping[str, Any]] | None) -> dict[str
             for key, value in merged.items():
                 if value < 0 or (key in ("Lf", "Cf", "Lg") and value == 0):
                     raise ParameterError(f"effect param_drift: {key} must be positive, got {value}")
+        if name == "gain_mismatch":
+            for key, value in merged.items():
+                if value < 0 or (key == "wc" and value == 0):
+                    raise ParameterError(f"effect gain_mismatch: {key} must be positive, got {value}")
         resolved[name] = merged
     return resolved
 

@@ -85,6 +85,8 @@ class InverterPlant:
         circuit = {key: getattr(self.params, key) for key in ("Lf", "Rf", "Cf", "Rd", "Lg", "Rg")}
         circuit.update(self.effects.get("param_drift", {}))
         self.circuit = circuit
+        # the controller's gains: nameplate unless `gain_mismatch` says it runs with others
+        self.control = self.params.replace(**self.effects.get("gain_mismatch", {}))
         hidden = []
         self._delay = None
         if "delay" in self.effects:
@@ -130,7 +132,7 @@ class InverterPlant:
         signals : dict of ndarray
             See :meth:`internal_signals`.
         """
-        p, c, eff = self.params, self.circuit, self.effects
+        p, c, eff = self.control, self.circuit, self.effects
         x = np.asarray(x)
         u = np.asarray(u)
         (delta, Pf, Qf, phi_d, phi_q, gam_d, gam_q,
@@ -196,6 +198,7 @@ class InverterPlant:
             d_gam_q = d_gam_q + vl["kaw"] * (sat_q - vi_q)
             vi_d, vi_q = sat_d, sat_q
 
+        vi_cmd_d, vi_cmd_q = vi_d, vi_q
         extra = []
         if self._delay is not None:
             a, b, cc_, dd = self._delay
@@ -223,7 +226,8 @@ class InverterPlant:
         )
         signals = {"w": w, "p": p_inst, "q": q_inst, "vo_d": vo_d, "vo_q": vo_q, "vref_d": vref_d,
                    "vref_q": vref_q, "ilref_d": ilr_d, "ilref_q": ilr_q, "ilref_unlimited_d": ilr_free_d,
-                   "ilref_unlimited_q": ilr_free_q, "vi_d": vi_d, "vi_q": vi_q}
+                   "ilref_unlimited_q": ilr_free_q, "vi_d": vi_d, "vi_q": vi_q,
+                   "vi_cmd_d": vi_cmd_d, "vi_cmd_q": vi_cmd_q}
         return dxdt, signals
 
     # ------------------------------------------------------------------ linearisation
@@ -328,6 +332,26 @@ class InverterPlant:
         scale[7:13] = OMEGA_BASE / min(self.circuit["Lf"], self.circuit["Cf"], self.circuit["Lg"])
         scale[0] = OMEGA_BASE
         return scale
+
+    def full_state(self, x_measured, u) -> np.ndarray:
+        """Extend measured states (..., 13) with hidden states in steady state for the inputs u.
+
+        The delay's Padé states are set so that the delayed voltage equals the
+        command (the state a delay settles to when the command is constant).
+        """
+        x_measured = np.asarray(x_measured, dtype=float)
+        if self.n_states == N_MEASURED:
+            return x_measured
+        hidden = np.zeros(x_measured.shape[:-1] + (self.n_states - N_MEASURED,))
+        full = np.concatenate([x_measured, hidden], axis=-1)
+        if self._delay is not None:
+            a, b, _, _ = self._delay
+            sig = self.internal_signals(full, u)
+            z_per_volt = -np.linalg.solve(a, b)  # steady state of z' = A z + B v for v = 1
+            order = len(b)
+            full[..., N_MEASURED:N_MEASURED + order] = sig["vi_cmd_d"][..., None] * z_per_volt
+            full[..., N_MEASURED + order:N_MEASURED + 2 * order] = sig["vi_cmd_q"][..., None] * z_per_volt
+        return full
 
     def eigenvalues(self, ug: float, theta_g: float = 0.0) -> np.ndarray:
         """Eigenvalues (1/s) of the linearisation at the equilibrium for (ug, theta_g)."""

@@ -1,0 +1,115 @@
+"""Reference models of the gap workflow: the virtual-HIL plant with nameplate parameters
+(optionally augmented with effects), or an explicit model; both replay measured inputs
+from each trajectory's measured initial state."""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from ..data import Dataset
+from ..integrate import simulate
+from ..model import ExplicitModel
+from ..plant import InverterPlant, PlantParameters
+
+# effects whose parameters are merged key by key when several are added (their keys name parameters)
+_MERGED_EFFECTS = ("param_drift", "gain_mismatch")
+
+
+class PlantReference:
+    """The virtual HIL as a reference: nameplate parameters plus zero or more effects."""
+
+    kind = "plant"
+
+    def __init__(self, params: PlantParameters | None = None, effects: dict | None = None,
+                 residual: ExplicitModel | None = None):
+        self.params = params or PlantParameters()
+        self.effects = copy.deepcopy(effects or {})
+        self.residual = residual  # an `unnamed` effect: extra explicit terms added to the vector field
+        self.plant = InverterPlant(self.params, self.effects)
+        self.state_names = self.plant.state_names
+        self.input_names = self.plant.input_names
+
+    def with_effects(self, extra: dict) -> "PlantReference":
+        """A new reference with more effects (param_drift / gain_mismatch entries are merged)."""
+        effects = copy.deepcopy(self.effects)
+        for name, values in extra.items():
+            if name in _MERGED_EFFECTS and name in effects:
+                effects[name].update(values)
+            else:
+                effects[name] = dict(values)
+        return PlantReference(self.params, effects, self.residual)
+
+    def with_residual(self, residual: ExplicitModel) -> "PlantReference":
+        return PlantReference(self.params, self.effects, residual)
+
+    def vector_field(self, x, u):
+        out = self.plant.vector_field(x, u)
+        if self.residual is not None:
+            out = out.copy()
+            out[..., :13] += self.residual.vector_field(x[..., :13], u)
+        return out
+
+    def internal_signals(self, x, u) -> dict:
+        return self.plant.internal_signals(self.plant.full_state(x, u), u)
+
+    def simulate(self, dataset: Dataset, substeps: int = 2, traj_index=None) -> list[np.ndarray]:
+        """Predicted measured states for each trajectory (list of (n, 13) arrays; NaN after a divergence)."""
+        trajs = [dataset.trajectories[k] for k in (traj_index if traj_index is not None else range(len(dataset)))]
+        out: dict[int, np.ndarray] = {}
+        groups: dict[int, list[int]] = {}
+        for k, tr in enumerate(trajs):
+            groups.setdefault(len(tr), []).append(k)
+        for _, members in groups.items():
+            x0 = np.stack([self.plant.full_state(trajs[k].x[0], trajs[k].u[0]) for k in members])
+            u = np.stack([trajs[k].u for k in members])
+            try:
+                with np.errstate(all="ignore"):
+                    pred = simulate(self, x0, u, dataset.dt, substeps=substeps)[..., :13]
+            except FloatingPointError:
+                pred = np.full(u.shape[:2] + (13,), np.nan)
+            for k, p in zip(members, pred):
+                out[k] = p
+        return [out[k] for k in range(len(trajs))]
+
+    def describe(self) -> dict:
+        return {"kind": "plant", "parameters": self.params.to_dict(), "effects": self.effects,
+                "residual": self.residual.to_dict() if self.residual is not None else None}
+
+
+class ModelReference:
+    """An explicit model JSON as the reference."""
+
+    kind = "model"
+
+    def __init__(self, model: ExplicitModel, residual: ExplicitModel | None = None):
+        self.model = model
+        self.residual = residual
+        self.state_names = model.state_names
+        self.input_names = model.input_names
+        self.effects = {}
+
+    def vector_field(self, x, u):
+        out = self.model.vector_field(x, u)
+        return out + self.residual.vector_field(x, u) if self.residual is not None else out
+
+    def with_residual(self, residual: ExplicitModel) -> "ModelReference":
+        return ModelReference(self.model, residual)
+
+    def internal_signals(self, x, u) -> dict:
+        return {}
+
+    def simulate(self, dataset: Dataset, substeps: int = 2, traj_index=None) -> list[np.ndarray]:
+        trajs = [dataset.trajectories[k] for k in (traj_index if traj_index is not None else range(len(dataset)))]
+        out = []
+        for tr in trajs:
+            try:
+                with np.errstate(all="ignore"):
+                    out.append(simulate(self, tr.x[0], tr.u, dataset.dt, substeps=substeps))
+            except FloatingPointError:
+                out.append(np.full(tr.x.shape, np.nan))
+        return out
+
+    def describe(self) -> dict:
+        return {"kind": "model", "model": self.model.to_dict(),
+                "residual": self.residual.to_dict() if self.residual is not None else None}
