@@ -4,7 +4,7 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "pisml_ros"
-NODES = ("measurement", "identifier", "analyser")
+NODES = ("measurement", "identifier", "analyser", "gap")
 
 setup(
     name=PACKAGE,

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from .data import DataError
+from .model import ModelFormatError
 from .plant.effects import EFFECTS
 from .plant.parameters import ParameterError
 
@@ -121,6 +122,37 @@ def cmd_analyse(args) -> int:
     return 0
 
 
+def cmd_gap(args) -> int:
+    from .data import concat_datasets, read_dataset
+    from .gap import GapSettings, GapWorkflow, ModelReference, PlantReference
+    from .gap.output import summary_lines, write_gap_outputs
+    from .model import ExplicitModel
+    from .plant import PlantParameters, load_parameters
+
+    data = concat_datasets([read_dataset(p) for p in args.data])
+    if args.model:
+        model = ExplicitModel.load(args.model)
+        missing = [n for n in model.state_names + model.input_names if n not in data.state_names + data.input_names]
+        if missing:
+            raise UserError(f"--model {args.model}: the data lacks the model's signals {missing}")
+        reference = ModelReference(model)
+    else:
+        reference = PlantReference(load_parameters(args.params) if args.params else PlantParameters())
+        if tuple(data.state_names) != reference.state_names:
+            raise UserError(f"the plant reference needs the states {list(reference.state_names)} in this order; "
+                            f"the data has {list(data.state_names)}")
+    if args.max_effects < 0:
+        raise UserError(f"--max-effects must be >= 0, got {args.max_effects}")
+    log = (lambda text: None) if args.quiet else (lambda text: print(f"[gap] {text}", flush=True))
+    flow = GapWorkflow(reference, GapSettings(max_effects=args.max_effects), log=log)
+    report = flow.run(data)
+    paths = write_gap_outputs(flow, report, data, args.out)
+    for line in summary_lines(report):
+        print(line)
+    print(f"wrote {paths['report']}, {paths['figure']}, {paths['augmented']}")
+    return 0
+
+
 def cmd_effects(args) -> int:
     for spec in EFFECTS.values():
         print(f"{spec.name}: {spec.description}")
@@ -168,6 +200,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=cmd_analyse)
 
+    p = sub.add_parser("gap", help="find where a reference model and measurements disagree and name the missing effect")
+    p.add_argument("--data", action="append", required=True, metavar="PATH", help="CSV or bag (repeatable)")
+    ref = p.add_mutually_exclusive_group(required=True)
+    ref.add_argument("--params", metavar="NOMINAL.yaml", help="reference: the virtual HIL with these nameplate values")
+    ref.add_argument("--model", metavar="MODEL.json", help="reference: an explicit model")
+    p.add_argument("--max-effects", type=int, default=3, help="effects to name at most (greedy)")
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_gap)
+
     p = sub.add_parser("effects", help="list the virtual HIL's named effects and their parameters")
     p.set_defaults(func=cmd_effects)
 
@@ -183,7 +225,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (UserError, DataError, ParameterError) as err:
+    except (UserError, DataError, ParameterError, ModelFormatError) as err:
         print(f"pisml: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

@@ -3,7 +3,7 @@ from pathlib import Path
 
 from .bag_io import MEASUREMENT_TOPIC, read_bag, validate_batch, write_bag
 from .csv_io import read_csv, write_csv
-from .dataset import Dataset, DataError, Trajectory
+from .dataset import Dataset, DataError, Trajectory, concat_datasets
 
 
 def is_csv_path(path) -> bool:
@@ -28,5 +28,5 @@ def write_dataset(dataset: Dataset, path, **kwargs) -> Path:
     return write_csv(dataset, path, **kwargs) if is_csv_path(path) else write_bag(dataset, path, **kwargs)
 
 
-__all__ = ["Dataset", "DataError", "Trajectory", "read_csv", "write_csv", "read_bag", "write_bag",
+__all__ = ["Dataset", "DataError", "Trajectory", "concat_datasets", "read_csv", "write_csv", "read_bag", "write_bag",
            "read_dataset", "write_dataset", "validate_batch", "MEASUREMENT_TOPIC", "is_csv_path"]

@@ -145,3 +145,27 @@ def check_sampling(traj: Trajectory, dt: float, source: str, rtol: float = 0.01)
         k = int(irregular[0]) + 1
         raise DataError(f"{source}: trajectory {traj.traj_id}: irregular sampling at sample {k}: step "
                         f"{steps[k - 1]:.6g} s, expected {dt:.6g} s (tolerance {rtol:.0%})")
+
+
+def concat_datasets(datasets: Sequence[Dataset]) -> Dataset:
+    """One dataset from several with the same signals; trajectory ids are renumbered where they collide."""
+    if not datasets:
+        raise DataError("no datasets given")
+    first = datasets[0]
+    trajectories, seen = [], set()
+    for ds in datasets:
+        if (ds.state_names, ds.input_names) != (first.state_names, first.input_names):
+            raise DataError(f"datasets have different signals: {list(first.state_names + first.input_names)} vs "
+                            f"{list(ds.state_names + ds.input_names)} ({ds.metadata.get('source', '?')})")
+        if abs(ds.dt - first.dt) > 1e-9 * first.dt:
+            raise DataError(f"datasets have different sample periods: {first.dt} vs {ds.dt} "
+                            f"({ds.metadata.get('source', '?')})")
+        for tr in ds:
+            tid = tr.traj_id
+            while tid in seen:
+                tid += 1000
+            seen.add(tid)
+            trajectories.append(Trajectory(tid, tr.t, tr.x, tr.u))
+    meta = dict(first.metadata)
+    meta["sources"] = [ds.metadata.get("source") for ds in datasets]
+    return Dataset(first.state_names, first.input_names, trajectories, meta)

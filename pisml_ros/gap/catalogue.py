@@ -41,7 +41,8 @@ class Candidate:
         (a limit above it would be invisible); others: log-spaced across the bounds."""
         if self.scale_of and context.get(self.scale_of):
             top = context[self.scale_of]
-            first = [np.clip(f * top, self.lower[0], self.upper[0]) for f in (0.45, 0.65, 0.85)]
+            # a hidden limit can sit far below what the reference reaches: geometric fractions
+            first = [np.clip(f * top, self.lower[0], self.upper[0]) for f in (0.04, 0.12, 0.35, 0.8)]
             rest = [np.sqrt(np.multiply(self.lower[1:], self.upper[1:]))] if len(self.keys) > 1 else []
             return [np.array([v, *np.ravel(rest)]) if rest else np.array([v]) for v in first]
         lo, hi = np.log(self.lower), np.log(self.upper)
@@ -55,7 +56,9 @@ def catalogue(params: PlantParameters) -> list[Candidate]:
         Candidate("current_clamp", ("imax_d", "imax_q"), (0.05, 0.05), (20.0, 20.0), main="imax_d",
                   scale_of="ilref_axis_max"),
         Candidate("voltage_limit", ("vmax", "kaw"), (0.3, 0.5), (3.0, 200.0), main="vmax", scale_of="vi_max"),
-        Candidate("delay", ("td",), (1e-5,), (2e-3,), fixed={"order": 2.0}, main="td"),
+        # first- and second-order Padé: the information criterion picks the one the data supports
+        Candidate("delay", ("td",), (1e-5,), (2e-3,), fixed={"order": 1.0}, main="td", label="delay"),
+        Candidate("delay", ("td",), (1e-5,), (2e-3,), fixed={"order": 2.0}, main="td", label="delay (Padé 2)"),
         Candidate("virtual_impedance", ("r", "x"), (1e-4, 1e-4), (1.0, 1.0), main="x", label="virtual_impedance"),
         Candidate("virtual_impedance", ("i_th", "k_r"), (0.1, 1e-3), (10.0, 5.0), main="k_r",
                   label="virtual_impedance (current-limiting)", scale_of="ig_max"),

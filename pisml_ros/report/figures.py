@@ -81,3 +81,25 @@ def _save(fig, path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_gap(data, before, after, windows, path, states=("ig_d", "ig_q", "vc_d", "vc_q"), traj_index=None) -> Path:
+    """Measured vs reference vs augmented simulation of one trajectory, disagreement windows shaded."""
+    if traj_index is None:
+        traj_index = windows[0]["traj_index"] if windows else 0
+    tr = data.trajectories[traj_index]
+    cols = data.state_index(states)
+    fig, axes = plt.subplots(len(states), 1, figsize=(8, 2.0 * len(states)), sharex=True)
+    for ax, col, name in zip(axes, cols, states):
+        ax.plot(tr.t * 1e3, tr.x[:, col], color="0.5", lw=1.5, label="measured")
+        ax.plot(tr.t * 1e3, before[traj_index][:, col], "r--", lw=1.0, label="reference")
+        ax.plot(tr.t * 1e3, after[traj_index][:, col], "b-", lw=0.9, label="augmented")
+        for w in windows:
+            if w["traj_index"] == traj_index:
+                ax.axvspan(w["t0"] * 1e3, w["t1"] * 1e3, color="orange", alpha=0.15)
+        ax.set_ylabel(f"{name} (p.u.)")
+    axes[0].legend(fontsize=7, loc="best")
+    axes[-1].set_xlabel("t (ms)")
+    fig.suptitle(f"gap workflow, trajectory {tr.traj_id} (disagreement windows shaded)")
+    fig.tight_layout()
+    return _save(fig, path)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pisml_msgs.msg import MeasurementBatch, ModeInfo, StabilityReport
+from pisml_msgs.msg import MeasurementBatch, ModeInfo, StabilityReport  # noqa: F401
 
 
 def batch_message(traj, start: int, stop: int, last: bool, dt: float, state_names, input_names, stamp=None):
@@ -49,4 +49,38 @@ def stability_message(report: dict, model_id: str, stamp=None, input_names=("ug"
     msg.min_damping_ratio = float(report["min_damping"])
     msg.stable = bool(report["stable"])
     msg.ug_margin = float(report.get("ug_margin", math.nan))
+    return msg
+
+
+def gap_message(report: dict, reference: str, stamp=None):
+    """A GapReport from the gap workflow's report dict."""
+    import json
+
+    from pisml_msgs.msg import GapEffect, GapReport, GapWindow
+
+    msg = GapReport()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.reference = reference
+    for w in report["windows"]:
+        cond = w.get("conditions", {})
+        msg.windows.append(GapWindow(trajectory_id=int(w["traj"]), t0=float(w["t0"]), t1=float(w["t1"]),
+                                     states=list(w["states"]), condition_names=list(cond),
+                                     condition_values=[float(v) for v in cond.values()]))
+    for e in report["effects"]:
+        eff = GapEffect(name=e["name"])
+        numeric = {k: v for k, v in e["params"].items() if isinstance(v, (int, float))}
+        eff.param_names = list(numeric) + ([f"parameter={e['params']['parameter']}"] if "parameter" in e["params"] else [])
+        eff.param_values = [float(v) for v in numeric.values()] + ([math.nan] if "parameter" in e["params"] else [])
+        eff.param_uncertainty = [float(e["uncertainty"].get(k, math.nan)) for k in numeric] + \
+            ([math.nan] if "parameter" in e["params"] else [])
+        evidence = {k: v for k, v in e["evidence"].items() if isinstance(v, (int, float))}
+        eff.evidence_names = list(evidence)
+        eff.evidence_values = [float(v) for v in evidence.values()]
+        msg.effects.append(eff)
+    msg.gap_before = float(report["gap_before"]["overall"])
+    msg.gap_after = float(report["gap_after"]["overall"])
+    msg.noise_level = float(report["noise_level"]["relative_median"])
+    msg.effect_missing = bool(report["effects"])
+    msg.report_json = json.dumps(report, default=float)
     return msg
