@@ -94,3 +94,31 @@ def test_demo_writes_its_report(tmp_path):
     assert report["operating_points"]["1.2"]["stable"] is False
     for name in ("eigenvalues.png", "stability_scan.png", "test_trajectories.png"):
         assert (tmp_path / "demo" / name).stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_gap_command_names_the_hidden_limit(tmp_path):
+    data = tmp_path / "hil.csv"
+    pisml("simulate", "--scenario", "test", "--effect-param", "current_limit.imax=1.5", "--out", data)
+    nominal = tmp_path / "nominal.yaml"
+    nominal.write_text("Lf: 0.10\nCf: 0.05\n")
+    proc = pisml("gap", "--data", data, "--params", nominal, "--out", tmp_path / "gap", "--quiet")
+    assert "effect: current_limit" in proc.stdout
+    report = json.loads((tmp_path / "gap" / "report.json").read_text())
+    assert report["effects"][0]["name"] == "current_limit"
+    assert report["effects"][0]["params"]["imax"] == pytest.approx(1.5, rel=0.02)
+    assert report["gap_after"]["overall"] < report["gap_before"]["overall"] / 10
+    assert set(report) >= {"effects", "gap_before", "gap_after", "windows", "noise_level"}
+    assert {"t0", "t1", "traj", "states"} <= set(report["windows"][0])
+    assert (tmp_path / "gap" / "gap.png").stat().st_size > 10_000
+    augmented = json.loads((tmp_path / "gap" / "augmented_model.json").read_text())
+    assert augmented["effects"]["current_limit"]["imax"] == pytest.approx(1.5, rel=0.02)
+
+
+def test_gap_command_rejects_bad_references(tmp_path):
+    data = tmp_path / "d.csv"
+    pisml("simulate", "--scenario", "test", "--duration", "0.005", "--out", data)
+    bad = tmp_path / "m.json"
+    bad.write_text('{"format": "nope"}')
+    proc = pisml("gap", "--data", data, "--model", bad, "--out", tmp_path / "o", check=False)
+    assert proc.returncode == 2 and "field format" in proc.stderr and "Traceback" not in proc.stderr

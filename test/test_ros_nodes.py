@@ -144,3 +144,27 @@ def test_nodes_take_a_params_file_and_stop_cleanly(tmp_path):
                      log_dir=tmp_path)
     assert bad.wait(60) == 2
     assert "missing.csv" in bad.log_path.read_text() and "Traceback" not in bad.log_path.read_text()
+
+
+def test_gap_node_publishes_a_gap_report(probe, tmp_path):
+    from pisml_msgs.msg import GapReport
+
+    schedules, duration = schedules_for("test")
+    data = generate(InverterPlant(effects={"current_limit": {"imax": 1.5}}), schedules, duration)
+    csv_path = write_csv(data, tmp_path / "limited.csv")
+    reports = []
+    sub = probe.create_subscription(GapReport, "/pisml/gap", reports.append, latched_qos())
+    gap = start_node("pisml-gap", "-p", "min_trajectories:=2", log_dir=tmp_path)
+    meas = start_node("pisml-measurement", "-p", "source:=csv", "-p", f"path:={csv_path}", "-p", "rate:=0.0",
+                      "-p", "wait_for_subscribers:=1", log_dir=tmp_path)
+    try:
+        assert spin_until(probe, lambda: reports, 240.0), gap.log_path.read_text()
+        msg = reports[-1]
+        assert msg.effect_missing and msg.effects[0].name == "current_limit"
+        imax = dict(zip(msg.effects[0].param_names, msg.effects[0].param_values))["imax"]
+        assert imax == pytest.approx(1.5, rel=0.05)
+        assert msg.gap_after < msg.gap_before / 10 and msg.windows
+    finally:
+        probe.destroy_subscription(sub)
+        assert stop_node(meas) == 0
+        assert stop_node(gap) == 0

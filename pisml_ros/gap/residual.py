@@ -52,8 +52,8 @@ def learn_unnamed_effect(flow, ref, data, span: int = 10, threshold: float = 0.0
     residual = ExplicitModel(data.state_names, data.input_names, [terms[k] for k in keep], coef[keep],
                              {"method": "pysindy STLSQ over Θ_ext, integral form", "threshold": threshold})
     augmented = ref.with_residual(residual)
-    before = gap_percent(data, flow._simulate(ref))
-    after = gap_percent(data, flow._simulate(augmented))
+    before = gap_percent(data, flow.corrected(flow._simulate(ref)))
+    after = gap_percent(data, flow.corrected(flow._simulate(augmented)))
     if not np.isfinite(after) or after >= before:
         return None
     listed = [{"state": data.state_names[j], "term": terms[k], "coefficient": float(coef[k, j])}

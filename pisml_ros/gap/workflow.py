@@ -42,6 +42,7 @@ class GapSettings:
     max_effects: int = 3
     min_delta_bic: float = 20.0
     min_reduction: float = 0.2  # an effect must remove at least this fraction of the whitened SSE
+    min_relative_change: float = 0.02  # drift/mismatch below 2 % of nameplate is tolerance, not an effect
     substeps: int = 2
 
 
@@ -105,40 +106,48 @@ class GapWorkflow:
         self.start_sigma = noise[None, :] / np.sqrt(counts)[:, None] + 1e-12 * (rms[None, :] + 1e-12)
         self.sim_data = _with_starts(data, starts)
 
-    def refine_starts(self, ref, iterations: int = 2) -> None:
-        """Correct the estimated initial states within their noise (Gauss-Newton with a prior).
+    def start_sensitivities(self, ref) -> None:
+        """Sensitivity of each simulated trajectory to its start, within the start's noise.
 
         A start averaged from noisy samples is still off by σ/√k; in the slow states
         (angle, filtered power, integrators) that offset persists and grows over the
-        record, and would read as a model gap. The correction is regularised by the
-        prior N(0, σ²/k), so it cannot absorb a real effect.
+        record and would read as a model gap. Every residual below is therefore taken
+        after the best start correction δ under the prior N(0, σ²/k), linearised with
+        these sensitivities (one Gauss-Newton step of the start: variable projection).
+        The prior keeps the correction from absorbing a real effect.
         """
         data, n_states = self.sim_data, len(self.data.state_names)
-        for _ in range(iterations):
-            trajs = []
-            for k, tr in enumerate(data):
-                for j in range(-1, n_states):
-                    x = tr.x.copy()
-                    if j >= 0:
-                        x[0, j] += self.start_sigma[k, j]
-                    trajs.append(dataclasses.replace(tr, x=x))
-            preds = ref.simulate(Dataset(data.state_names, data.input_names, trajs, dict(data.metadata)),
-                                 substeps=self.settings.substeps)
-            starts = []
-            for k, tr in enumerate(data):
-                block = preds[k * (n_states + 1):(k + 1) * (n_states + 1)]
-                base = block[0]
-                r = ((self.data.trajectories[k].x - base) / self.sigma).ravel()
-                jac = np.stack([((p - base) / self.sigma).ravel() for p in block[1:]], axis=1)
-                if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
-                    starts.append(tr.x[0])
-                    continue
-                step = np.linalg.solve(jac.T @ jac + np.eye(n_states), jac.T @ r)
-                starts.append(tr.x[0] + step * self.start_sigma[k])
-            data = _with_starts(data, starts)
-        self.sim_data = data
+        trajs = []
+        for k, tr in enumerate(data):
+            for j in range(-1, n_states):
+                x = tr.x.copy()
+                if j >= 0:
+                    x[0, j] += self.start_sigma[k, j]
+                trajs.append(dataclasses.replace(tr, x=x))
+        preds = ref.simulate(Dataset(data.state_names, data.input_names, trajs, dict(data.metadata)),
+                             substeps=self.settings.substeps)
+        self.start_jac = []
+        for k in range(len(data)):
+            block = preds[k * (n_states + 1):(k + 1) * (n_states + 1)]
+            jac = np.stack([((p - block[0]) / self.sigma).ravel() for p in block[1:]], axis=1)
+            jac = np.where(np.isfinite(jac), jac, 0.0)
+            self.start_jac.append((jac, np.linalg.inv(jac.T @ jac + np.eye(n_states)) @ jac.T))
+
+    def corrected(self, preds, traj_index=None) -> list[np.ndarray]:
+        """Predictions after the best start correction of each trajectory (see start_sensitivities)."""
+        traj_index = list(traj_index if traj_index is not None else range(len(preds)))
+        out = []
+        for p, k in zip(preds, traj_index):
+            r = ((self.data.trajectories[k].x - p) / self.sigma).ravel()
+            if not np.all(np.isfinite(r)):
+                out.append(p)
+                continue
+            jac, solve = self.start_jac[k]
+            out.append(p + (jac @ (solve @ r)).reshape(p.shape) * self.sigma)
+        return out
 
     def _whitened(self, preds, traj_index) -> np.ndarray:
+        preds = self.corrected(preds, traj_index)
         res = [((preds[i] - self.data.trajectories[k].x) / self.sigma).ravel() for i, k in enumerate(traj_index)]
         r = np.concatenate(res)
         return np.where(np.isfinite(r), r, 1e3)
@@ -245,6 +254,8 @@ class GapWorkflow:
                 fits.append(fit)
                 self.log(f"  {cand.label}: {dict(zip(cand.keys, np.round(fit['values'], 5)))} "
                          f"SSE {fit['sse']:.4g} (before {base_sse:.4g})")
+        fits = [f for f in fits if not f["candidate"].nominal or
+                abs(f["values"][0] / f["candidate"].nominal[0] - 1) >= self.settings.min_relative_change]
         fits.sort(key=lambda f: f["bic"])
         return fits, base_sse, base_bic, n
 
@@ -289,9 +300,8 @@ class GapWorkflow:
         s = self.settings
         self._prepare(data)
         ref = self.reference
-        if hasattr(ref, "simulate"):
-            self.refine_starts(ref)
-        preds_before = self._simulate(ref)
+        self.start_sensitivities(ref)
+        preds_before = self.corrected(self._simulate(ref))
         windows = self.detect(preds_before)
         self.log(f"noise level (median over states, relative to RMS): "
                  f"{np.median(self.noise / np.sqrt(np.mean(np.concatenate([t.x for t in data]) ** 2, 0))):.2e}; "
@@ -321,7 +331,7 @@ class GapWorkflow:
                          f"(SSE -{reduction:.1%})")
                 if best["sse"] / best["n"] < s.chi2_done:
                     break  # the rest is noise
-                remaining = self.detect(self._simulate(ref))
+                remaining = self.detect(self.corrected(self._simulate(ref)))
                 if not remaining:
                     break
             if not effects:
@@ -331,7 +341,7 @@ class GapWorkflow:
                 if unnamed is not None:
                     ref = unnamed["reference"]
                     effects.append({"unnamed": unnamed})
-        preds_after = self._simulate(ref)
+        preds_after = self.corrected(self._simulate(ref))
         self.augmented = ref
         self.preds_before, self.preds_after, self.windows = preds_before, preds_after, windows
         return report_dict(self, data, windows, effects, preds_before, preds_after, time.monotonic() - started)
