@@ -18,5 +18,5 @@ def generate_launch_description():
         DeclareLaunchArgument("params_file", default_value=default_params,
                               description="node parameters (YAML)"),
         *(Node(package="pisml_ros", executable=name, name=name, parameters=[params], output="screen")
-          for name in ("measurement", "identifier", "analyser")),
+          for name in ("measurement", "identifier", "analyser", "gap")),
     ])

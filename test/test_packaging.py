@@ -29,7 +29,7 @@ def install_space(tmp_path_factory):
 
 
 def test_executables_where_ros2_run_looks(install_space):
-    for name in ("measurement", "identifier", "analyser", "pisml"):
+    for name in ("measurement", "identifier", "analyser", "gap", "pisml"):
         exe = install_space / "lib" / "pisml_ros" / name
         assert exe.is_file() and os.access(exe, os.X_OK), exe
     assert (install_space / "share" / "ament_index" / "resource_index" / "packages" / "pisml_ros").is_file()

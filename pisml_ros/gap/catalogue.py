@@ -34,6 +34,7 @@ class Candidate:
         return {self.name: params}
 
     nominal: tuple = ()  # where a drift/mismatch candidate starts (the nameplate value)
+    points: int = 3  # screening points of a bounds-spanning grid
     scale_of: str = ""  # limit candidates: the reference signal whose observed maximum scales the grid
 
     def grid(self, context: dict) -> list[np.ndarray]:
@@ -46,7 +47,7 @@ class Candidate:
             rest = [np.sqrt(np.multiply(self.lower[1:], self.upper[1:]))] if len(self.keys) > 1 else []
             return [np.array([v, *np.ravel(rest)]) if rest else np.array([v]) for v in first]
         lo, hi = np.log(self.lower), np.log(self.upper)
-        return [np.exp(lo + (hi - lo) * f) for f in (0.25, 0.5, 0.75)]
+        return [np.exp(lo + (hi - lo) * f) for f in np.linspace(0.25, 0.75, self.points)]
 
 
 def catalogue(params: PlantParameters) -> list[Candidate]:
@@ -57,8 +58,10 @@ def catalogue(params: PlantParameters) -> list[Candidate]:
                   scale_of="ilref_axis_max"),
         Candidate("voltage_limit", ("vmax", "kaw"), (0.3, 0.5), (3.0, 200.0), main="vmax", scale_of="vi_max"),
         # first- and second-order Padé: the information criterion picks the one the data supports
-        Candidate("delay", ("td",), (1e-5,), (2e-3,), fixed={"order": 1.0}, main="td", label="delay"),
-        Candidate("delay", ("td",), (1e-5,), (2e-3,), fixed={"order": 2.0}, main="td", label="delay (Padé 2)"),
+        # (a dense grid: a delay can push the LCL resonance unstable, and the fit is multimodal there)
+        Candidate("delay", ("td",), (1e-5,), (2e-3,), fixed={"order": 1.0}, main="td", label="delay", points=9),
+        Candidate("delay", ("td",), (1e-5,), (2e-3,), fixed={"order": 2.0}, main="td", label="delay (Padé 2)",
+                  points=9),
         Candidate("virtual_impedance", ("r", "x"), (1e-4, 1e-4), (1.0, 1.0), main="x", label="virtual_impedance"),
         Candidate("virtual_impedance", ("i_th", "k_r"), (0.1, 1e-3), (10.0, 5.0), main="k_r",
                   label="virtual_impedance (current-limiting)", scale_of="ig_max"),
