@@ -13,7 +13,7 @@ from pisml_ros.plant.scenarios import generate, schedules_for
 pytestmark = pytest.mark.slow
 
 
-def _data(effects, scenario, snr, n_traj=4, seed=1):
+def _data(effects, scenario, snr, n_traj=3, seed=1):
     schedules, duration = schedules_for(scenario, seed=seed, n_traj=n_traj if scenario == "train" else None)
     clean = generate(InverterPlant(effects=effects), schedules, duration)
     noisy = add_measurement_noise(clean, snr, seed=seed + 7) if snr else clean
@@ -28,18 +28,15 @@ def _run(effects, scenario, snr):
 
 
 CASES = [
-    # (hidden effects, scenario, SNR dB or None, expected label, main key, true value)
-    ({"current_limit": {"imax": 1.5}}, "test", None, "current_limit", "imax", 1.5),
+    # (hidden effects, scenario, SNR dB or None, expected label, main key, true value); more values per
+    # effect, each clean and at 40 dB, are in bench/gap_bench.py (bench/GAP_RESULTS.md)
     ({"current_limit": {"imax": 2.0}}, "test", 40, "current_limit", "imax", 2.0),
     ({"current_clamp": {"imax_d": 1.0, "imax_q": 1.5}}, "test", None, "current_clamp", "imax_d", 1.0),
     ({"voltage_limit": {"vmax": 1.2}}, "test", 40, "voltage_limit", "vmax", 1.2),
     ({"delay": {"td": 2e-4}}, "train", None, "delay", "td", 2e-4),
-    ({"delay": {"td": 3e-4}}, "train", 40, "delay", "td", 3e-4),
     ({"virtual_impedance": {"r": 0.02, "x": 0.1}}, "train", 40, "virtual_impedance", "x", 0.1),
     ({"param_drift": {"Lf": 0.12}}, "train", 40, "param_drift.Lf", "value", 0.12),
-    ({"param_drift": {"Cf": 0.06}}, "train", None, "param_drift.Cf", "value", 0.06),
     ({"gain_mismatch": {"KpC": 0.3}}, "train", None, "gain_mismatch.KpC", "value", 0.3),
-    ({"gain_mismatch": {"KiV": 4.0}}, "train", 40, "gain_mismatch.KiV", "value", 4.0),
     ({"frequency_limit": {"dw_max": 0.002}}, "train", None, "frequency_limit", "dw_max", 0.002),
 ]
 

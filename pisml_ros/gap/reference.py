@@ -55,22 +55,7 @@ class PlantReference:
 
     def simulate(self, dataset: Dataset, substeps: int = 2, traj_index=None) -> list[np.ndarray]:
         """Predicted measured states for each trajectory (list of (n, 13) arrays; NaN after a divergence)."""
-        trajs = [dataset.trajectories[k] for k in (traj_index if traj_index is not None else range(len(dataset)))]
-        out: dict[int, np.ndarray] = {}
-        groups: dict[int, list[int]] = {}
-        for k, tr in enumerate(trajs):
-            groups.setdefault(len(tr), []).append(k)
-        for _, members in groups.items():
-            x0 = np.stack([self.plant.full_state(trajs[k].x[0], trajs[k].u[0]) for k in members])
-            u = np.stack([trajs[k].u for k in members])
-            try:
-                with np.errstate(all="ignore"):
-                    pred = simulate(self, x0, u, dataset.dt, substeps=substeps)[..., :13]
-            except FloatingPointError:
-                pred = np.full(u.shape[:2] + (13,), np.nan)
-            for k, p in zip(members, pred):
-                out[k] = p
-        return [out[k] for k in range(len(trajs))]
+        return _batch_simulate(self, dataset, substeps, traj_index, lambda tr: self.plant.full_state(tr.x[0], tr.u[0]))
 
     def describe(self) -> dict:
         return {"kind": "plant", "parameters": self.params.to_dict(), "effects": self.effects,
@@ -100,16 +85,37 @@ class ModelReference:
         return {}
 
     def simulate(self, dataset: Dataset, substeps: int = 2, traj_index=None) -> list[np.ndarray]:
-        trajs = [dataset.trajectories[k] for k in (traj_index if traj_index is not None else range(len(dataset)))]
-        out = []
-        for tr in trajs:
-            try:
-                with np.errstate(all="ignore"):
-                    out.append(simulate(self, tr.x[0], tr.u, dataset.dt, substeps=substeps))
-            except FloatingPointError:
-                out.append(np.full(tr.x.shape, np.nan))
-        return out
+        return _batch_simulate(self, dataset, substeps, traj_index, lambda tr: tr.x[0])
 
     def describe(self) -> dict:
         return {"kind": "model", "model": self.model.to_dict(),
                 "residual": self.residual.to_dict() if self.residual is not None else None}
+
+
+def _batch_simulate(system, dataset: Dataset, substeps, traj_index, start_of) -> list[np.ndarray]:
+    """Simulate trajectories of equal length together (one vectorised RK4 pass per length)."""
+    n_meas = len(dataset.state_names)
+    trajs = [dataset.trajectories[k] for k in (traj_index if traj_index is not None else range(len(dataset)))]
+    groups: dict[int, list[int]] = {}
+    for k, tr in enumerate(trajs):
+        groups.setdefault(len(tr), []).append(k)
+    out: dict[int, np.ndarray] = {}
+    for members in groups.values():
+        x0 = np.stack([start_of(trajs[k]) for k in members])
+        u = np.stack([trajs[k].u for k in members])
+        try:
+            with np.errstate(all="ignore"):
+                pred = simulate(system, x0, u, dataset.dt, substeps=substeps)[..., :n_meas]
+        except FloatingPointError:  # one diverging trajectory: simulate them one by one
+            pred = np.stack([_one(system, x0[i], u[i], dataset.dt, substeps, n_meas) for i in range(len(members))])
+        for k, p in zip(members, pred):
+            out[k] = p
+    return [out[k] for k in range(len(trajs))]
+
+
+def _one(system, x0, u, dt, substeps, n_meas):
+    try:
+        with np.errstate(all="ignore"):
+            return simulate(system, x0, u, dt, substeps=substeps)[..., :n_meas]
+    except FloatingPointError:
+        return np.full((u.shape[0], n_meas), np.nan)

@@ -17,7 +17,7 @@ from ..model import ExplicitModel
 from ..model.expressions import term_set
 
 
-def learn_unnamed_effect(flow, ref, data, span: int = 10, threshold: float = 0.02) -> dict | None:
+def learn_unnamed_effect(flow, ref, data, span: int = 10, threshold: float = 0.05) -> dict | None:
     """Fit the residual dynamics; return {"reference", "terms", "evidence"} or None if nothing helps."""
     import pysindy as ps
 
@@ -43,9 +43,22 @@ def learn_unnamed_effect(flow, ref, data, span: int = 10, threshold: float = 0.0
         rows_a.append(cum_t[k + span] - cum_t[k])
         rows_b.append(tr.x[k + span] - tr.x[k] - (cum_f[k + span] - cum_f[k]))
     a, b = np.concatenate(rows_a), np.concatenate(rows_b)
-    opt = ps.STLSQ(threshold=threshold, alpha=1e-6, normalize_columns=True, max_iter=30)
-    opt.fit(a, b)
-    coef = np.asarray(opt.coef_).T  # (n_terms, n_states)
+    # only the states that disagree get residual terms; each with a threshold relative to its own
+    # largest (column-normalised) ridge coefficient, since residuals differ in scale by orders
+    flagged = {name for w in flow.windows for name in w["states"][:4]} if getattr(flow, "windows", None) else set()
+    norms = np.linalg.norm(a, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    coef = np.zeros((len(terms), b.shape[1]))
+    for j, name in enumerate(data.state_names):
+        if flagged and name not in flagged:
+            continue
+        ridge = np.linalg.lstsq(np.vstack([a / norms, 1e-6 * np.eye(a.shape[1])]),
+                                np.concatenate([b[:, j], np.zeros(a.shape[1])]), rcond=None)[0]
+        if not np.any(ridge):
+            continue
+        opt = ps.STLSQ(threshold=threshold * float(np.max(np.abs(ridge))), alpha=1e-6, max_iter=30)
+        opt.fit(a / norms, b[:, j:j + 1])
+        coef[:, j] = np.asarray(opt.coef_)[0] / norms
     keep = np.flatnonzero(np.any(coef != 0, axis=1))
     if keep.size == 0:
         return None

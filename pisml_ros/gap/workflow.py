@@ -337,6 +337,7 @@ class GapWorkflow:
             if not effects:
                 from .residual import learn_unnamed_effect
 
+                self.windows = windows
                 unnamed = learn_unnamed_effect(self, ref, data)
                 if unnamed is not None:
                     ref = unnamed["reference"]
