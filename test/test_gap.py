@@ -13,7 +13,7 @@ from pisml_ros.plant.scenarios import generate, schedules_for
 pytestmark = pytest.mark.slow
 
 
-def _data(effects, scenario, snr, n_traj=3, seed=1):
+def _data(effects, scenario, snr, n_traj=2, seed=1):
     schedules, duration = schedules_for(scenario, seed=seed, n_traj=n_traj if scenario == "train" else None)
     clean = generate(InverterPlant(effects=effects), schedules, duration)
     noisy = add_measurement_noise(clean, snr, seed=seed + 7) if snr else clean
