@@ -1,6 +1,5 @@
 """Datasets: CSV and rosbag2 round trips, third-party files, validation of bad input, streaming."""
 import csv
-import json
 
 import numpy as np
 import pytest
@@ -210,3 +209,17 @@ def test_dataset_rejects_bad_shapes():
         Trajectory(0, np.zeros(3), np.zeros((2, 2)), np.zeros((3, 1)))
     with pytest.raises(DataError):
         Dataset(("a", "t"), ("ug",), [])
+
+
+def test_steady_start_is_found_with_clean_and_noisy_inputs():
+    from pisml_ros.data.dataset import steady_start_length
+
+    rng = np.random.default_rng(0)
+    u = np.ones((400, 2)) * [1.0, 0.0]
+    u[150:, 0] = 0.9
+    clean = Trajectory(0, np.arange(400) * 1e-4, np.zeros((400, 1)), u)
+    assert steady_start_length(clean) == 150
+    noisy = Trajectory(0, clean.t, clean.x, u + 0.005 * rng.standard_normal(u.shape))
+    assert steady_start_length(noisy) == 150
+    flat = Trajectory(0, clean.t, clean.x, np.ones((400, 2)))
+    assert steady_start_length(flat) == 400

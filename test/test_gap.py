@@ -2,7 +2,6 @@
 no false alarm on agreeing data; two effects at once are both named."""
 import json
 
-import numpy as np
 import pytest
 
 from pisml_ros.gap import GapWorkflow, PlantReference, gap_percent

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..fileio import json_default
 from .dataset import Dataset, DataError, Trajectory, check_sampling
 
 MEASUREMENT_TOPIC = "/pisml/measurement"
@@ -101,7 +102,7 @@ def write_bag(dataset: Dataset, path: str | Path, batch_size: int = DEFAULT_BATC
         # log times: trajectories laid end to end, 1 s apart, starting at t = 1 s
         offset = 1.0
         writer.write(info_conn, int(offset * 1e9) - 1,
-                     store.serialize_cdr(string_cls(data=json.dumps(meta, default=_json_default)), STRING_TYPE))
+                     store.serialize_cdr(string_cls(data=json.dumps(meta, default=json_default)), STRING_TYPE))
         for traj, start, stop, last in dataset_to_batches(dataset, batch_size):
             if start == 0 and traj is not dataset.trajectories[0]:
                 offset += 1.0
@@ -130,14 +131,6 @@ def write_bag(dataset: Dataset, path: str | Path, batch_size: int = DEFAULT_BATC
     tmp.rename(path)
     staging.rmdir()
     return path
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
 def read_bag(path: str | Path, topic: str | None = None, sampling_rtol: float = 0.01) -> Dataset:

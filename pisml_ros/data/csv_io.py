@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..signals import INPUT_NAMES
+from ..fileio import atomic_write_text, json_default
 from .dataset import Dataset, DataError, Trajectory, check_sampling
 
 
@@ -41,19 +42,8 @@ def write_csv(dataset: Dataset, path: str | Path, sidecar: bool = True) -> Path:
         meta.setdefault("dt", dataset.dt if dataset.trajectories else None)
         meta["state_names"] = list(dataset.state_names)
         meta["input_names"] = list(dataset.input_names)
-        side = sidecar_path(path)
-        side_tmp = side.with_name(side.name + ".tmp")
-        side_tmp.write_text(json.dumps(meta, indent=2, sort_keys=True, default=_json_default) + "\n")
-        side_tmp.replace(side)
+        atomic_write_text(sidecar_path(path), json.dumps(meta, indent=2, sort_keys=True, default=json_default) + "\n")
     return path
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
 def read_csv(path: str | Path, input_names=None, expected_states=None, sampling_rtol: float = 0.01) -> Dataset:

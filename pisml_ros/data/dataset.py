@@ -130,6 +130,20 @@ class Dataset:
         }
 
 
+def steady_start_length(traj: Trajectory) -> int:
+    """Samples at the start of a trajectory before its inputs first change (its steady start).
+
+    A change is a step larger than six times the typical sample-to-sample variation of
+    the input, so that noisy measured inputs still show their steady start.
+    """
+    if len(traj) < 2:
+        return len(traj)
+    steps = np.abs(np.diff(traj.u, axis=0))
+    tolerance = np.maximum(6 * np.median(steps, axis=0), 1e-9)
+    changes = np.flatnonzero(np.any(steps > tolerance, axis=1))
+    return int(changes[0]) + 1 if changes.size else len(traj)
+
+
 def check_sampling(traj: Trajectory, dt: float, source: str, rtol: float = 0.01) -> None:
     """Reject non-increasing or irregular sample times; the message names source and sample."""
     if len(traj) < 2:

@@ -2,16 +2,9 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
-
-def _atomic_write(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
+from ..fileio import atomic_write_text
 
 
 def write_gap_outputs(flow, report: dict, data, out_dir: str | Path) -> dict:
@@ -21,8 +14,8 @@ def write_gap_outputs(flow, report: dict, data, out_dir: str | Path) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"report": out / "report.json", "figure": out / "gap.png", "augmented": out / "augmented_model.json"}
-    _atomic_write(paths["report"], json.dumps(report, indent=2, default=float) + "\n")
-    _atomic_write(paths["augmented"], json.dumps(flow.augmented.describe(), indent=2, default=float) + "\n")
+    atomic_write_text(paths["report"], json.dumps(report, indent=2, default=float) + "\n")
+    atomic_write_text(paths["augmented"], json.dumps(flow.augmented.describe(), indent=2, default=float) + "\n")
     plot_gap(data, flow.preds_before, flow.preds_after, flow.windows, paths["figure"])
     return paths
 

@@ -20,10 +20,10 @@ import numpy as np
 import scipy.optimize
 
 from ..data import Dataset
+from ..data.dataset import steady_start_length
 from ..ident.noise import estimate_noise_std
 from ..signals import SCORED_STATES
 from .catalogue import Candidate, catalogue
-from .reference import PlantReference
 
 
 @dataclasses.dataclass
@@ -53,8 +53,7 @@ def initial_states(data: Dataset) -> tuple[list[np.ndarray], np.ndarray]:
     """
     out, counts = [], []
     for tr in data:
-        changes = np.flatnonzero(np.any(np.diff(tr.u, axis=0) != 0, axis=1))
-        k0 = int(changes[0]) + 1 if changes.size else len(tr)
+        k0 = steady_start_length(tr)
         count = min(k0, 20) if k0 >= 5 else 1
         out.append(tr.x[:count].mean(axis=0))
         counts.append(count)
@@ -263,6 +262,40 @@ class GapWorkflow:
         fits.sort(key=lambda f: f["bic"])
         return fits, base_sse, base_bic, n
 
+    def _refit_jointly(self, effects, traj_index) -> dict:
+        """Least squares over the parameters of all named effects at once; updates them in place."""
+        cands = [e["best"]["candidate"] for e in effects]
+        sizes = [len(c.keys) for c in cands]
+        lo = np.log(np.concatenate([c.lower for c in cands]))
+        hi = np.log(np.concatenate([c.upper for c in cands]))
+        start = np.log(np.concatenate([e["best"]["values"] for e in effects]))
+
+        def build(logv):
+            ref, k = self.reference, 0
+            for c, n in zip(cands, sizes):
+                ref = ref.with_effects(c.settings(np.exp(logv[k:k + n])))
+                k += n
+            return ref
+
+        def residuals(logv):
+            return self._whitened(self._simulate(build(logv), traj_index), traj_index)
+
+        res = scipy.optimize.least_squares(residuals, np.clip(start, lo + 1e-9, hi - 1e-9), bounds=(lo, hi),
+                                           method="trf", diff_step=1e-3, max_nfev=self.settings.max_nfev)
+        values = np.exp(res.x)
+        try:
+            cov = np.linalg.pinv(res.jac.T @ res.jac) * float(np.sum(res.fun ** 2)) / max(res.fun.size - len(values), 1)
+            unc = values * np.sqrt(np.clip(np.diag(cov), 0, None))
+        except np.linalg.LinAlgError:
+            unc = np.full(len(values), np.nan)
+        k = 0
+        for entry, n in zip(effects, sizes):
+            entry["best"] = dict(entry["best"], values=values[k:k + n], uncertainty=unc[k:k + n])
+            k += n
+        sse = float(np.sum(res.fun ** 2))
+        self.log(f"joint refit of {[c.label for c in cands]}: SSE {sse:.4g}")
+        return dict(effects[-1]["best"], sse=sse, n=res.fun.size)
+
     def _screen_by_gauss_newton(self, cand, ref, traj_index, base):
         """One finite-difference Gauss-Newton step from the nameplate value: predicted SSE and value."""
         v0 = np.array(cand.nominal, dtype=float)
@@ -327,10 +360,15 @@ class GapWorkflow:
                              f"ΔBIC {base_bic - best['bic']:.1f}, reduction {reduction:.1%})")
                     break
                 cand = best["candidate"]
-                ref = ref.with_effects(cand.settings(best["values"]))
                 skip.add(cand.label)
                 effects.append({"best": best, "reduction": reduction, "delta_bic": base_bic - best["bic"],
                                 "ranking": [(f["candidate"].label, f["bic"]) for f in fits]})
+                if len(effects) > 1:
+                    # a first effect fitted alone absorbed part of the second: refit them together
+                    best = self._refit_jointly(effects, traj_index)
+                ref = self.reference
+                for entry in effects:
+                    ref = ref.with_effects(entry["best"]["candidate"].settings(entry["best"]["values"]))
                 self.log(f"named {cand.label} {dict(zip(cand.keys, np.round(best['values'], 5)))} "
                          f"(SSE -{reduction:.1%})")
                 if best["sse"] / best["n"] < s.chi2_done:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..data import Dataset
+from ..data.dataset import steady_start_length
 
 
 def estimate_noise_std(dataset: Dataset, min_samples: int = 8) -> np.ndarray:
@@ -19,8 +20,7 @@ def estimate_noise_std(dataset: Dataset, min_samples: int = 8) -> np.ndarray:
     """
     flat_diffs = []
     for tr in dataset:
-        changes = np.flatnonzero(np.any(np.diff(tr.u, axis=0) != 0, axis=1))
-        end = int(changes[0]) + 1 if changes.size else len(tr)
+        end = steady_start_length(tr)
         if end >= min_samples:
             flat_diffs.append(np.diff(tr.x[:end], axis=0))
     if flat_diffs:

@@ -25,6 +25,7 @@ import scipy.optimize
 import scipy.sparse
 
 from ..data import Dataset
+from ..data.dataset import steady_start_length
 from ..model.expressions import TermSet
 
 
@@ -49,9 +50,8 @@ def _windows(dataset: Dataset, window: int):
 
 
 def _steady_start(tr, min_samples=5):
-    changes = np.flatnonzero(np.any(np.diff(tr.u, axis=0) != 0, axis=1))
-    end = int(changes[0]) + 1 if changes.size else 0
-    return end if end >= min_samples else 0
+    end = steady_start_length(tr)
+    return end if min_samples <= end < len(tr) else 0
 
 
 class TrajectoryFitter:

@@ -10,7 +10,7 @@ the engine issue.
 """
 from __future__ import annotations
 
-from .common import MODEL_TOPIC, STABILITY_TOPIC, declare, latched_qos, run_node
+from .common import MODEL_TOPIC, STABILITY_TOPIC, declare, latched_qos, publish_diagnostics, run_node
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
 from pisml_msgs.msg import IdentifiedModel, StabilityReport  # noqa: E402
@@ -64,9 +64,7 @@ class AnalyserNode(Node):
                              KeyValue(key="ug_margin", value=f"{report['ug_margin']:.6g}")]
             statuses.append(status)
             self.get_logger().info(f"{model_id} at ug={ug:g}: {message}, max real part {report['max_real']:.4g} 1/s")
-        msg = DiagnosticArray(status=statuses)
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics.publish(msg)
+        publish_diagnostics(self, self.diagnostics, statuses)
 
     def _on_model(self, msg: IdentifiedModel):
         self.get_logger().info(f"model {msg.model_id} ({msg.stage}) received; explicit-model analysis "

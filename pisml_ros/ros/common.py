@@ -41,6 +41,25 @@ def declare(node, name: str, default, description: str, low=None, high=None, rea
     return node.declare_parameter(name, default, descriptor).value
 
 
+def status(name: str, level, message: str, values: dict | None = None, hardware_id: str = "pisml"):
+    """A DiagnosticStatus with key/value pairs (values shown as strings)."""
+    from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+    level = DiagnosticStatus.OK if level is None else level
+    out = DiagnosticStatus(level=level, name=name, hardware_id=hardware_id, message=message)
+    out.values = [KeyValue(key=str(k), value=str(v)) for k, v in (values or {}).items()]
+    return out
+
+
+def publish_diagnostics(node, publisher, statuses) -> None:
+    """Publish a DiagnosticArray of ``statuses`` stamped with the node's clock."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    msg = DiagnosticArray(status=list(statuses))
+    msg.header.stamp = node.get_clock().now().to_msg()
+    publisher.publish(msg)
+
+
 def run_node(node_class, args=None) -> int:
     """Init rclpy (``--ros-args`` honoured), spin the node on a multi-threaded executor,
     shut down cleanly on SIGINT/SIGTERM; exit status 0, or 2 on a configuration error."""

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import threading
 
-from .common import MEASUREMENT_TOPIC, declare, latched_qos, measurement_qos, run_node
+from .common import MEASUREMENT_TOPIC, declare, latched_qos, measurement_qos, publish_diagnostics, run_node, status
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from pisml_msgs.msg import GapReport, MeasurementBatch  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
@@ -103,15 +103,9 @@ class GapNode(Node):
             self.get_logger().error(self.last_error)
 
     def _publish_diagnostics(self):
+        values = dict(self.buffer.stats(), state=self.state, rejected_batches=self.rejected)
         level = DiagnosticStatus.WARN if self.last_error else DiagnosticStatus.OK
-        status = DiagnosticStatus(level=level, name="pisml: gap", hardware_id="pisml",
-                                  message=self.last_error or self.state)
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in self.buffer.stats().items()]
-        status.values += [KeyValue(key="state", value=self.state),
-                          KeyValue(key="rejected_batches", value=str(self.rejected))]
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics.publish(msg)
+        publish_diagnostics(self, self.diagnostics, [status("pisml: gap", level, self.last_error or self.state, values)])
 
 
 def main(args=None) -> int:

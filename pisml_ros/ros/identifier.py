@@ -7,9 +7,9 @@ issue; the parameters that will drive it are declared already.
 """
 from __future__ import annotations
 
-from .common import MEASUREMENT_TOPIC, declare, measurement_qos, run_node
+from .common import MEASUREMENT_TOPIC, declare, measurement_qos, publish_diagnostics, run_node, status
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from pisml_msgs.msg import MeasurementBatch  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
@@ -50,17 +50,11 @@ class IdentifierNode(Node):
             self.get_logger().info(event)
 
     def _publish_diagnostics(self):
+        values = dict(self.buffer.stats(), rejected_batches=self.rejected, stage="buffering",
+                      last_error=self.last_error)
         level = DiagnosticStatus.WARN if self.last_error else DiagnosticStatus.OK
-        status = DiagnosticStatus(level=level, name="pisml: identifier", hardware_id="pisml",
-                                  message=self.last_error or "buffering")
-        stats = self.buffer.stats()
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in stats.items()]
-        status.values += [KeyValue(key="rejected_batches", value=str(self.rejected)),
-                          KeyValue(key="stage", value="buffering"),
-                          KeyValue(key="last_error", value=self.last_error)]
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics.publish(msg)
+        publish_diagnostics(self, self.diagnostics,
+                            [status("pisml: identifier", level, self.last_error or "buffering", values)])
 
 
 def main(args=None) -> int:

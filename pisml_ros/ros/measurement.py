@@ -10,10 +10,10 @@ from __future__ import annotations
 import itertools
 import time
 
-from .common import MEASUREMENT_TOPIC, declare, measurement_qos, run_node
+from .common import MEASUREMENT_TOPIC, declare, measurement_qos, publish_diagnostics, run_node, status
 
 import rclpy  # noqa: E402  (common set up the DDS environment first)
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from pisml_msgs.msg import MeasurementBatch  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
@@ -120,14 +120,11 @@ class MeasurementNode(Node):
                 self.create_timer(1.0, lambda: rclpy.try_shutdown())
 
     def _publish_diagnostics(self):
-        status = DiagnosticStatus(level=DiagnosticStatus.OK, name="pisml: measurement", hardware_id=self.source,
-                                  message="publishing" if self.next_batch < len(self.batches) else "done")
-        status.values = [KeyValue(key="published_samples", value=str(self.published_samples)),
-                         KeyValue(key="batches", value=f"{self.next_batch}/{len(self.batches)}"),
-                         KeyValue(key="passes", value=str(self.passes))]
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics.publish(msg)
+        publish_diagnostics(self, self.diagnostics, [status(
+            "pisml: measurement", DiagnosticStatus.OK,
+            "publishing" if self.next_batch < len(self.batches) else "done",
+            {"published_samples": self.published_samples, "batches": f"{self.next_batch}/{len(self.batches)}",
+             "passes": self.passes}, hardware_id=self.source)])
 
 
 def main(args=None) -> int:
