@@ -81,9 +81,9 @@ def main(argv=None) -> int:
             named = "+".join(e.get("label", e["name"]) for e in report["effects"])
             if label is None:
                 ok = not report["effects"]
-            elif "+" in label:
-                ok = set(label.split("+")) <= {e.get("label", e["name"]) for e in report["effects"]}
-            else:
+            elif "+" in label:  # exactly these effects, nothing spurious
+                ok = sorted(label.split("+")) == sorted(e.get("label", e["name"]) for e in report["effects"])
+            else:  # the right effect first; a second one only if it is a real (joint) improvement
                 ok = bool(report["effects"]) and report["effects"][0].get("label") == label
             err = None
             if ok and key is not None:
