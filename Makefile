@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: env demo test test-fast bags clean
+.PHONY: env demo test test-fast bags bench-gap clean
 
 env:
 	@bash scripts/bootstrap_env.sh
@@ -26,6 +26,10 @@ bags: env
 	$(VENV)/bin/pisml simulate --scenario train --snr-db 40 --seed 0 --out bags/train_40dB
 	$(VENV)/bin/pisml simulate --scenario test --seed 0 --out bags/test_clean
 	$(VENV)/bin/pisml simulate --scenario smallsignal --snr-db 40 --seed 0 --out bags/smallsignal_40dB
+
+# gap workflow benchmark (quick matrix, ~10 min on 2 cores): bench/gap_results.json, bench/GAP_RESULTS.md
+bench-gap: env
+	$(PY) bench/gap_bench.py --quick
 
 clean:
 	rm -rf build install log out .pytest_cache
