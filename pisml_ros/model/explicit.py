@@ -12,10 +12,10 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-import scipy.optimize
 import sympy
 
 from ..data import Dataset, Trajectory
+from ..equilibrium import continuation, root
 from ..fileio import atomic_write_text
 from ..integrate import simulate
 from .expressions import ExpressionError, term_set
@@ -105,24 +105,18 @@ class ExplicitModel:
         starts += [(np.asarray(r["inputs"], dtype=float), np.asarray(r["state"], dtype=float)) for r in refs[:3]]
         if not starts:
             starts.append((u, np.zeros(self.n_states)))
+        scale = np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0)
+
+        def accept(x, u_now):
+            return bool(np.max(np.abs(self.vector_field(x, u_now)) / scale) < tol)
+
         for u_start, x_start in starts:
-            x = x_start
-            for level in np.linspace(0.0, 1.0, 1 if np.allclose(u_start, u) else 21):
-                x = self._solve(u_start + level * (u - u_start), x, tol)
-                if x is None:
-                    break
+            x = root(self.vector_field, self.jacobian, u_start, x_start, accept)
+            if x is not None and not np.allclose(u_start, u):
+                x = continuation(self.vector_field, self.jacobian, u_start, x, u, 20, accept)
             if x is not None:
                 return x
         raise EquilibriumNotFound(f"no equilibrium of the model at {dict(zip(self.input_names, u.tolist()))}")
-
-    def _solve(self, u, start, tol):
-        sol = scipy.optimize.root(lambda x: self.vector_field(x, u), start, jac=lambda x: self.jacobian(x, u),
-                                  method="hybr", options={"xtol": 1e-12})
-        if not np.all(np.isfinite(sol.x)):
-            return None
-        scale = np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0)
-        residual = np.max(np.abs(self.vector_field(sol.x, u)) / scale)
-        return sol.x if residual < tol else None
 
     def eigenvalues(self, *inputs: float) -> np.ndarray:
         """Eigenvalues (1/s) at the equilibrium for the given inputs."""

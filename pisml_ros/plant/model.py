@@ -17,12 +17,12 @@ import math
 
 import numpy as np
 import scipy.interpolate
-import scipy.optimize
 import scipy.signal
 
 from .effects import resolve_effects
 from .parameters import OMEGA_BASE, PlantParameters
 
+from ..equilibrium import continuation, root
 from ..signals import INPUT_NAMES, STATE_NAMES
 
 N_MEASURED = len(STATE_NAMES)
@@ -305,26 +305,30 @@ class InverterPlant:
             if x is not None:
                 return x
         # continuation from nominal voltage
-        x = self._solve(np.array([1.0, theta_g]), self.initial_guess(1.0, theta_g), tol)
+        u_nominal = np.array([1.0, theta_g])
+        x = self._solve(u_nominal, self.initial_guess(1.0, theta_g), tol)
         if x is not None:
-            for level in np.linspace(1.0, ug, 25)[1:]:
-                x = self._solve(np.array([level, theta_g]), x, tol)
-                if x is None:
-                    break
+            x = continuation(self.vector_field, self.jacobian, u_nominal, x, u, 24, self._accept(tol))
             if x is not None:
-                return x
+                return self._wrap_angle(x, u)
         raise EquilibriumError(f"no equilibrium found at ug={ug}, theta_g={theta_g}")
 
-    def _solve(self, u, start, tol):
-        sol = scipy.optimize.root(
-            lambda x: self.vector_field(x, u), start, jac=lambda x: self.jacobian(x, u), method="hybr",
-            options={"xtol": 1e-13},
-        )
-        x = sol.x
+    def _accept(self, tol):
+        def accept(x, u):
+            residual = np.max(np.abs(self.vector_field(x, u) / self._residual_scale()))
+            return bool(np.isfinite(residual) and residual < tol * 1e3)
+        return accept
+
+    @staticmethod
+    def _wrap_angle(x, u):
         # angles are defined modulo 2π: keep delta - theta_g in (-π, π]
+        x = x.copy()
         x[0] = u[1] + (x[0] - u[1] + math.pi) % (2 * math.pi) - math.pi
-        residual = np.max(np.abs(self.vector_field(x, u) / self._residual_scale()))
-        return x if np.isfinite(residual) and residual < tol * 1e3 else None
+        return x
+
+    def _solve(self, u, start, tol):
+        x = root(self.vector_field, self.jacobian, u, start, self._accept(tol))
+        return None if x is None else self._wrap_angle(x, u)
 
     def _residual_scale(self):
         # the filter equations are scaled by wb/L ~ 1e4; compare residuals on a per-unit footing
