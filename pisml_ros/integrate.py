@@ -101,3 +101,45 @@ def _scipy(plant, x0, inputs, dt, method, rtol, atol):
         out[a:b + 1] = sol.y.T
         x = sol.y[:, -1]
     return out
+
+
+def simulate_many(system, starts, inputs, dt: float, substeps: int = 4, method: str = "rk4",
+                  n_out: int | None = None) -> list[np.ndarray]:
+    """Simulate several trajectories, those of equal length together in one vectorised pass.
+
+    Parameters
+    ----------
+    starts : sequence of ndarray, each (n_states,)
+    inputs : sequence of ndarray, each (n_samples_k, n_inputs)
+    n_out : int, optional
+        Keep only the first ``n_out`` state columns (the measured ones).
+
+    Returns
+    -------
+    list of ndarray
+        One (n_samples_k, n_out) prediction per trajectory; a trajectory that diverges
+        is NaN throughout, without spoiling the others.
+    """
+    groups: dict[int, list[int]] = {}
+    for k, u in enumerate(inputs):
+        groups.setdefault(len(u), []).append(k)
+    out: dict[int, np.ndarray] = {}
+    for members in groups.values():
+        x0 = np.stack([starts[k] for k in members])
+        u = np.stack([inputs[k] for k in members])
+        try:
+            with np.errstate(all="ignore"):
+                pred = simulate(system, x0, u, dt, method=method, substeps=substeps)
+        except FloatingPointError:  # one diverging trajectory: simulate them one by one
+            pred = [_simulate_or_nan(system, x0[i], u[i], dt, substeps, method) for i in range(len(members))]
+        for k, p in zip(members, pred):
+            out[k] = p[..., :n_out] if n_out is not None else p
+    return [out[k] for k in range(len(inputs))]
+
+
+def _simulate_or_nan(system, x0, u, dt, substeps, method):
+    try:
+        with np.errstate(all="ignore"):
+            return simulate(system, x0, u, dt, method=method, substeps=substeps)
+    except FloatingPointError:
+        return np.full((u.shape[0], x0.shape[0]), np.nan)

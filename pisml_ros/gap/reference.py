@@ -8,7 +8,7 @@ import copy
 import numpy as np
 
 from ..data import Dataset
-from ..integrate import simulate
+from ..integrate import simulate_many
 from ..model import ExplicitModel
 from ..plant import InverterPlant, PlantParameters
 
@@ -93,29 +93,7 @@ class ModelReference:
 
 
 def _batch_simulate(system, dataset: Dataset, substeps, traj_index, start_of) -> list[np.ndarray]:
-    """Simulate trajectories of equal length together (one vectorised RK4 pass per length)."""
-    n_meas = len(dataset.state_names)
+    """Measured-state predictions of the selected trajectories, each from ``start_of(trajectory)``."""
     trajs = [dataset.trajectories[k] for k in (traj_index if traj_index is not None else range(len(dataset)))]
-    groups: dict[int, list[int]] = {}
-    for k, tr in enumerate(trajs):
-        groups.setdefault(len(tr), []).append(k)
-    out: dict[int, np.ndarray] = {}
-    for members in groups.values():
-        x0 = np.stack([start_of(trajs[k]) for k in members])
-        u = np.stack([trajs[k].u for k in members])
-        try:
-            with np.errstate(all="ignore"):
-                pred = simulate(system, x0, u, dataset.dt, substeps=substeps)[..., :n_meas]
-        except FloatingPointError:  # one diverging trajectory: simulate them one by one
-            pred = np.stack([_one(system, x0[i], u[i], dataset.dt, substeps, n_meas) for i in range(len(members))])
-        for k, p in zip(members, pred):
-            out[k] = p
-    return [out[k] for k in range(len(trajs))]
-
-
-def _one(system, x0, u, dt, substeps, n_meas):
-    try:
-        with np.errstate(all="ignore"):
-            return simulate(system, x0, u, dt, substeps=substeps)[..., :n_meas]
-    except FloatingPointError:
-        return np.full((u.shape[0], n_meas), np.nan)
+    return simulate_many(system, [start_of(tr) for tr in trajs], [tr.u for tr in trajs], dataset.dt,
+                         substeps=substeps, n_out=len(dataset.state_names))

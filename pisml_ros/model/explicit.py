@@ -17,7 +17,7 @@ import sympy
 from ..data import Dataset, Trajectory
 from ..equilibrium import continuation, root
 from ..fileio import atomic_write_text
-from ..integrate import simulate
+from ..integrate import simulate_many
 from .expressions import ExpressionError, term_set
 
 FORMAT = "pisml-explicit-model/1"
@@ -139,34 +139,10 @@ class ExplicitModel:
             icols = [dataset.input_names.index(n) for n in self.input_names]
         else:
             cols, icols = list(range(self.n_states)), list(range(len(self.input_names)))
-        out = []
-        groups: dict[int, list[Trajectory]] = {}
-        for tr in dataset:
-            groups.setdefault(len(tr), []).append(tr)
-        results = {}
-        for n, trs in groups.items():
-            x0 = np.stack([tr.x[0, cols] for tr in trs])
-            u = np.stack([tr.u[:, icols] for tr in trs])
-            try:
-                with np.errstate(all="ignore"):
-                    pred = simulate(self, x0, u, dataset.dt, method=method, substeps=substeps)
-            except FloatingPointError:
-                pred = self._simulate_each(x0, u, dataset.dt, substeps)
-            for tr, p in zip(trs, pred):
-                results[id(tr)] = p
-        for tr in dataset:
-            out.append(Trajectory(tr.traj_id, tr.t.copy(), results[id(tr)], tr.u[:, icols]))
+        preds = simulate_many(self, [tr.x[0, cols] for tr in dataset], [tr.u[:, icols] for tr in dataset],
+                              dataset.dt, substeps=substeps, method=method)
+        out = [Trajectory(tr.traj_id, tr.t.copy(), p, tr.u[:, icols]) for tr, p in zip(dataset, preds)]
         return Dataset(self.state_names, self.input_names, out, {"dt": dataset.dt, "source": "simulation"})
-
-    def _simulate_each(self, x0, u, dt, substeps):
-        preds = []
-        for k in range(x0.shape[0]):
-            try:
-                with np.errstate(all="ignore"):
-                    preds.append(simulate(self, x0[k], u[k], dt, substeps=substeps))
-            except FloatingPointError:
-                preds.append(np.full((u.shape[1], self.n_states), np.nan))
-        return np.stack(preds)
 
     # ---------------------------------------------------------------- symbolic views
     def equations(self, digits: int = 6, threshold: float = 0.0) -> list[str]:
