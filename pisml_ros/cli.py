@@ -42,6 +42,10 @@ def _add_plant_options(parser):
 
 # ---------------------------------------------------------------------------- commands
 def cmd_simulate(args) -> int:
+    if args.model:
+        return _simulate_model(args)
+    if not args.scenario:
+        raise UserError("give --scenario (simulate the virtual HIL) or --model MODEL.json --data PATH (replay)")
     from .data import write_dataset
     from .plant.noise import add_measurement_noise
     from .plant.scenarios import generate, schedules_for
@@ -61,6 +65,95 @@ def cmd_simulate(args) -> int:
     print(f"wrote {out}: {len(dataset)} trajectories x {len(dataset.trajectories[0])} samples "
           f"({args.scenario}, {'clean' if args.snr_db is None else f'{args.snr_db:g} dB SNR'}"
           f"{', effects ' + ','.join(plant.effects) if plant.effects else ''})")
+    return 0
+
+
+def _simulate_model(args) -> int:
+    from .analysis.metrics import relative_error
+    from .data import concat_datasets, read_dataset, write_dataset
+    from .model import ExplicitModel
+
+    if not args.data:
+        raise UserError("--model needs --data PATH (the trajectories whose inputs and initial states are replayed)")
+    if args.scenario:
+        raise UserError("--scenario and --model exclude each other")
+    model = ExplicitModel.load(args.model)
+    data = concat_datasets([read_dataset(p) for p in args.data])
+    missing = [n for n in model.state_names + model.input_names if n not in data.state_names + data.input_names]
+    if missing:
+        raise UserError(f"--data {' '.join(args.data)}: lacks the model's signals {missing}")
+    pred = model.simulate(data, method=args.solver)
+    cols = data.state_index(model.state_names)
+    for tr, pr in zip(data, pred):
+        err = relative_error(pr.x, tr.x[:, cols])
+        print(f"trajectory {tr.traj_id}: relative error {err:.4g} % (all states)")
+    pred.metadata.update({"model": str(args.model), "command": "pisml " + " ".join(sys.argv[1:])})
+    out = write_dataset(pred, args.out)
+    print(f"wrote {out}: {len(pred)} predicted trajectories")
+    return 0
+
+
+def cmd_identify(args) -> int:
+    import time as _time
+
+    from .data import concat_datasets, read_dataset
+    from .ident import METHODS, ConfigError, IdentConfig, make_estimator
+
+    if args.method not in METHODS:
+        raise UserError(f"--method {args.method}: choose one of {', '.join(METHODS)}")
+    overrides = {}
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise UserError(f"--set {item}: expected KEY=VALUE")
+        overrides[key.strip()] = value.strip()
+    try:
+        config = IdentConfig.load(args.config, overrides)
+    except ConfigError as err:
+        raise UserError(str(err)) from None
+    train = concat_datasets([read_dataset(p) for p in args.data])
+    smallsignal = concat_datasets([read_dataset(p) for p in args.smallsignal]) if args.smallsignal else None
+    if smallsignal is not None and tuple(smallsignal.state_names) != tuple(train.state_names):
+        raise UserError(f"--smallsignal: states {list(smallsignal.state_names)} differ from the training data's "
+                        f"{list(train.state_names)}")
+    out = Path(args.out)
+    if out.suffix != ".json":
+        raise UserError(f"--out {out}: expected a .json path for the explicit model")
+    started = _time.monotonic()
+    show = sys.stderr.isatty() and not args.quiet
+    last = [0.0]
+
+    def progress(update):
+        now = _time.monotonic()
+        if args.quiet:
+            return
+        if update.model is not None or update.stage in ("distillation",) or now - last[0] > (0.5 if show else 5):
+            last[0] = now
+            losses = " ".join(f"{k}={v:.4g}" for k, v in update.losses.items())
+            line = f"[{now - started:6.1f} s] {update.stage:<12} {100 * update.progress:5.1f} % {losses}"
+            if show and update.model is None:
+                print("\r" + line[:150].ljust(150), end="", file=sys.stderr, flush=True)
+            else:
+                print(("\r" if show else "") + line[:150].ljust(150 if show else 0), file=sys.stderr, flush=True)
+
+    try:
+        est = make_estimator(args.method, config).fit(train, smallsignal, callback=progress)
+    except (ConfigError, ValueError) as err:
+        raise UserError(str(err)) from None
+    if est.explicit_model_ is None:
+        print(f"{args.method}: no explicit model (a neural vector field with {est.model_.n_parameters} parameters); "
+              f"nothing written", file=sys.stderr)
+        return 0
+    model = est.explicit_model_
+    model.metadata.setdefault("identification", {}).update(
+        {"data": [str(p) for p in args.data], "smallsignal": [str(p) for p in args.smallsignal or []],
+         "metrics": {k: float(v) for k, v in est.metrics_.items()}})
+    model.save(out)
+    print(f"{args.method}: {model.n_parameters} nonzero coefficients over {len(model.terms)} terms, "
+          f"{est.metrics_['seconds']:.1f} s; wrote {out}")
+    if args.equations:
+        for line in model.equations(digits=5):
+            print("  " + line)
     return 0
 
 
@@ -91,9 +184,17 @@ def cmd_analyse(args) -> int:
     from .analysis.operating_point import operating_point_report, ug_stability_margin
     from .plant import EquilibriumError
 
-    if args.model != "plant":
-        raise UserError(f"--model {args.model}: only 'plant' (the virtual HIL) is available in this version")
-    system = _load_plant(args)
+    from .model import EquilibriumNotFound, ExplicitModel
+
+    if args.model == "plant":
+        system = _load_plant(args)
+    else:
+        if args.params or args.effect or args.effect_param:
+            raise UserError("--params/--effect/--effect-param apply to --model plant only")
+        system = ExplicitModel.load(args.model)
+        if tuple(system.input_names) != ("ug", "theta_g") and len(system.input_names) != 2:
+            raise UserError(f"--model {args.model}: analysis needs two inputs (grid magnitude, phase), "
+                            f"the model has {list(system.input_names)}")
     for name, value in (("--ug", args.ug), ("--theta-g", args.theta_g)):
         if not math.isfinite(value):
             raise UserError(f"{name} must be finite, got {value}")
@@ -101,7 +202,7 @@ def cmd_analyse(args) -> int:
         raise UserError(f"--ug must be > 0, got {args.ug}")
     try:
         report = operating_point_report(system, args.ug, args.theta_g)
-    except EquilibriumError as err:
+    except (EquilibriumError, EquilibriumNotFound) as err:
         raise UserError(str(err)) from None
     if args.margin:
         report.update(ug_stability_margin(system, args.ug, args.theta_g))
@@ -165,7 +266,42 @@ def cmd_effects(args) -> int:
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
-    return run_demo(Path(args.out), quiet=args.quiet)
+    if not args.timeout > 0:
+        raise UserError(f"--timeout must be > 0 s, got {args.timeout}")
+    if args.method is not None:
+        from .ident import METHODS
+
+        if args.method not in METHODS:
+            raise UserError(f"--method {args.method!r} is not one of {', '.join(METHODS)}")
+    return run_demo(Path(args.out), quiet=args.quiet, method=args.method, timeout=args.timeout)
+
+
+def cmd_record(args) -> int:
+    from .ros.recording import record
+
+    if args.duration is not None and not args.duration > 0:
+        raise UserError(f"--duration must be > 0 s, got {args.duration}")
+    if Path(args.out).exists():
+        raise UserError(f"--out {args.out}: exists (choose a new directory)")
+    print(f"recording {', '.join(args.topics)} into {args.out}"
+          f"{f' for {args.duration:g} s' if args.duration else ' until Ctrl-C'}", flush=True)
+    counts = record(args.topics, args.out, duration=args.duration, storage=args.storage,
+                    log=lambda text: print(text, flush=True))
+    print(f"wrote {args.out}: " + ", ".join(f"{topic} {n} messages" for topic, n in counts.items()), flush=True)
+    return 0
+
+
+def cmd_play(args) -> int:
+    from .ros.recording import play
+
+    if not args.rate >= 0:
+        raise UserError(f"--rate must be >= 0, got {args.rate}")
+    if args.wait_for_subscribers < 0:
+        raise UserError(f"--wait-for-subscribers must be >= 0, got {args.wait_for_subscribers}")
+    n = play(args.bag, rate=args.rate, loop=args.loop, topics=args.topics,
+             wait_for_subscribers=args.wait_for_subscribers, log=lambda text: print(text, flush=True))
+    print(f"published {n} messages", flush=True)
+    return 0
 
 
 # ---------------------------------------------------------------------------- parser
@@ -173,8 +309,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pisml", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("simulate", help="simulate the virtual HIL on a scenario of the paper's protocol")
-    p.add_argument("--scenario", required=True, choices=["train", "test", "smallsignal"])
+    p = sub.add_parser("simulate", help="simulate the virtual HIL on a scenario of the paper's protocol, "
+                                        "or replay measured inputs through an explicit model")
+    p.add_argument("--scenario", choices=["train", "test", "smallsignal"])
+    p.add_argument("--model", metavar="MODEL.json", help="replay --data through this explicit model instead")
+    p.add_argument("--data", action="append", metavar="PATH", help="with --model: CSV or bag (repeatable)")
     _add_plant_options(p)
     p.add_argument("--snr-db", type=float, help="add per-channel measurement noise at this SNR (dB)")
     p.add_argument("--seed", type=int, default=0, help="random seed (scenario and noise)")
@@ -184,6 +323,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="PATH.csv (plus PATH.json sidecar) or a bag directory")
     p.set_defaults(func=cmd_simulate)
 
+    p = sub.add_parser("identify", help="identify explicit governing equations from measured trajectories")
+    p.add_argument("--data", action="append", required=True, metavar="PATH", help="CSV or bag (repeatable)")
+    p.add_argument("--smallsignal", action="append", metavar="PATH",
+                   help="small-signal records (CSV or bag, repeatable) for the Jacobian-consistency loss")
+    p.add_argument("--method", default="pisml", help="pisml | pisml-nojac | std-sindy | mod-sindy | node")
+    p.add_argument("--config", metavar="FILE", help="identification settings (YAML/JSON)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override one setting (repeatable)")
+    p.add_argument("--out", required=True, metavar="MODEL.json")
+    p.add_argument("--equations", action="store_true", help="print the identified equations")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_identify)
+
     p = sub.add_parser("data", help="inspect datasets")
     data_sub = p.add_subparsers(dest="data_command", required=True, metavar="ACTION")
     q = data_sub.add_parser("info", help="summarise a CSV or bag dataset")
@@ -192,7 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(func=cmd_data_info)
 
     p = sub.add_parser("analyse", aliases=["analyze"], help="equilibrium, eigenvalues and damping at an operating point")
-    p.add_argument("--model", default="plant", help="'plant' (the virtual HIL)")
+    p.add_argument("--model", default="plant", help="'plant' (the virtual HIL) or an explicit model JSON file")
     _add_plant_options(p)
     p.add_argument("--ug", type=float, required=True, help="grid voltage magnitude (p.u.)")
     p.add_argument("--theta-g", type=float, default=0.0, help="grid voltage phase (rad)")
@@ -215,8 +366,27 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="the main job on the bundled defaults (what `make demo` runs)")
     p.add_argument("--out", default="out/demo", help="report folder")
+    p.add_argument("--method", help="identification method (default: the demo's, pisml)")
+    p.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("record", help="record live topics into a rosbag2 (mcap)")
+    p.add_argument("--topics", nargs="+", default=["/pisml/measurement"], metavar="TOPIC",
+                   help="topics to record (default /pisml/measurement)")
+    p.add_argument("--out", required=True, metavar="DIR", help="bag directory to create")
+    p.add_argument("--duration", type=float, help="seconds to record (default: until Ctrl-C)")
+    p.add_argument("--storage", default="mcap", choices=["mcap", "sqlite3"])
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("play", help="publish the messages of a rosbag2 on the live graph")
+    p.add_argument("bag", metavar="BAG")
+    p.add_argument("--rate", type=float, default=1.0, help="x the recorded pace (0 = as fast as possible)")
+    p.add_argument("--loop", action="store_true", help="start again at the end")
+    p.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics (default: all)")
+    p.add_argument("--wait-for-subscribers", type=int, default=1, metavar="N",
+                   help="hold the data until N subscribers of the measurement topic are matched (0 = don't)")
+    p.set_defaults(func=cmd_play)
     return parser
 
 

@@ -25,3 +25,40 @@ def continuation(field: Callable, jacobian: Callable, u_from, x_from, u_to, step
         if x is None:
             return None
     return x
+
+
+class EquilibriumNotFound(RuntimeError):
+    """No equilibrium of the model at the requested inputs."""
+
+
+def find_equilibrium(field: Callable, jacobian: Callable, inputs, reference_points=(), x0=None,
+                     tol: float = 1e-9, scale=None, what: str = "model"):
+    """Equilibrium f(x, u) = 0 of an identified model at ``inputs``.
+
+    Starts from ``x0`` or from the stored reference points (``{"inputs", "state"}``) whose inputs
+    are nearest, then follows the inputs from there in small steps (continuation).
+
+    Raises
+    ------
+    EquilibriumNotFound
+    """
+    u = np.array(inputs, dtype=float)
+    starts = []
+    if x0 is not None:
+        starts.append((u, np.asarray(x0, dtype=float)))
+    refs = sorted(reference_points or [], key=lambda r: float(np.linalg.norm(np.asarray(r["inputs"]) - u)))
+    starts += [(np.asarray(r["inputs"], dtype=float), np.asarray(r["state"], dtype=float)) for r in refs[:3]]
+    if not starts:
+        raise EquilibriumNotFound(f"{what}: no starting point for an equilibrium search (no reference points)")
+    scale = np.ones(len(starts[0][1])) if scale is None else np.asarray(scale, dtype=float)
+
+    def accept(x, u_now):
+        return bool(np.max(np.abs(field(x, u_now)) / scale) < tol)
+
+    for u_start, x_start in starts:
+        x = root(field, jacobian, u_start, x_start, accept)
+        if x is not None and not np.allclose(u_start, u):
+            x = continuation(field, jacobian, u_start, x, u, 20, accept)
+        if x is not None:
+            return x
+    raise EquilibriumNotFound(f"no equilibrium of the {what} at inputs {u.tolist()}")

@@ -48,3 +48,40 @@ def spin_until(node, condition, timeout: float, executor=None) -> bool:
         if condition():
             return True
     return False
+
+
+def start_cli(name: str, *args: str, log_dir: Path) -> subprocess.Popen:
+    """Start ``pisml ARGS`` (python -m pisml_ros.cli) as its own process; output in ``log_dir/name.log``."""
+    log = open(log_dir / f"{name}.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "pisml_ros.cli", *map(str, args)], stdout=log,
+                            stderr=subprocess.STDOUT, env=dict(os.environ))
+    proc.log_path = log_dir / f"{name}.log"
+    return proc
+
+
+def wait_for_log(proc: subprocess.Popen, text: str, timeout: float) -> bool:
+    """Wait until ``text`` appears in the process's log (False on timeout or when it exits first)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if text in proc.log_path.read_text():
+            return True
+        if proc.poll() is not None:
+            return text in proc.log_path.read_text()
+        time.sleep(0.1)
+    return False
+
+
+def diagnostic_values(msgs, name):
+    """The latest DiagnosticStatus called ``name`` in a list of DiagnosticArray, and its values as a dict."""
+    for msg in reversed(msgs):
+        for status in msg.status:
+            if status.name == name:
+                return status, {kv.key: kv.value for kv in status.values}
+    return None, {}
+
+
+def wait_future(node, future, timeout: float):
+    """Spin ``node`` until ``future`` is done; its result (AssertionError on timeout)."""
+    if not spin_until(node, future.done, timeout):
+        raise AssertionError(f"no answer within {timeout} s")
+    return future.result()

@@ -42,9 +42,11 @@ def test_analyser_publishes_latched_plant_stability(probe, tmp_path):
     try:
         time.sleep(2.0)  # subscribe late on purpose: the reports are transient-local
         reports = []
-        sub = probe.create_subscription(StabilityReport, "/pisml/stability", reports.append, latched_qos())
-        # depth 1: a late subscriber gets the latest report (ug = 1.2)
-        assert spin_until(probe, lambda: reports, 20.0), proc.log_path.read_text()
+        sub = probe.create_subscription(StabilityReport, "/pisml/stability", reports.append, latched_qos(10))
+        # the depth holds every operating point: a late subscriber gets both reports, in order
+        assert spin_until(probe, lambda: len(reports) == 2, 20.0), proc.log_path.read_text()
+        assert [list(r.input_values) for r in reports] == [[0.8, 0.0], [1.2, 0.0]]
+        assert reports[0].stable is True and reports[0].message == "stable"
         report = reports[-1]
         assert report.model_id == "plant" and list(report.input_values) == [1.2, 0.0]
         assert report.stable is False and report.max_real_part == pytest.approx(0.255, abs=1e-3)

@@ -38,7 +38,7 @@ class FitResult:
     t_values: np.ndarray  # coefficient / standard error (support entries), nan where undetermined
 
 
-def _windows(dataset: Dataset, window: int):
+def _windows(dataset: Dataset, window: int, max_windows: int | None = None):
     xs, us = [], []
     for tr in dataset:
         for start in range(0, len(tr) - window, window):
@@ -46,6 +46,10 @@ def _windows(dataset: Dataset, window: int):
             us.append(tr.u[start:start + window + 1])
     if not xs:
         raise ValueError(f"no trajectory is longer than the window ({window} samples)")
+    if max_windows is not None and len(xs) > max_windows:
+        # evenly spread over all trajectories and times: the cost of a fit is linear in the windows
+        keep = np.linspace(0, len(xs) - 1, max_windows).round().astype(int)
+        xs, us = [xs[k] for k in keep], [us[k] for k in keep]
     return np.array(xs), np.array(us)
 
 
@@ -71,13 +75,14 @@ class TrajectoryFitter:
     """
 
     def __init__(self, terms: TermSet, n_states: int, dt: float, window: int = 50, substeps: int = 2,
-                 weights=None):
+                 weights=None, max_windows: int | None = None):
         self.terms = terms
         self.n_states = n_states
         self.dt = dt
         self.window = window
         self.substeps = substeps
         self.weights = np.ones(n_states) if weights is None else np.asarray(weights, dtype=float)
+        self.max_windows = max_windows
 
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5) -> FitResult:
@@ -97,7 +102,7 @@ class TrajectoryFitter:
 
         torch.set_default_dtype(torch.float64)
         n = self.n_states
-        xw, uw = _windows(train, self.window)
+        xw, uw = _windows(train, self.window, self.max_windows)
         X = torch.tensor(xw)
         U = torch.tensor(uw)
         w = torch.tensor(self.weights)

@@ -15,7 +15,7 @@ import numpy as np
 import sympy
 
 from ..data import Dataset, Trajectory
-from ..equilibrium import continuation, root
+from ..equilibrium import EquilibriumNotFound, find_equilibrium
 from ..fileio import atomic_write_text
 from ..integrate import simulate_many
 from .expressions import ExpressionError, term_set
@@ -25,10 +25,6 @@ FORMAT = "pisml-explicit-model/1"
 
 class ModelFormatError(ValueError):
     """A model file that does not follow the explicit model contract; the message says where."""
-
-
-class EquilibriumNotFound(RuntimeError):
-    """No equilibrium of the model at the requested inputs."""
 
 
 class ExplicitModel:
@@ -97,26 +93,9 @@ class ExplicitModel:
         u = np.array(inputs, dtype=float)
         if u.shape != (len(self.input_names),):
             raise ValueError(f"equilibrium needs {len(self.input_names)} input values {self.input_names}, got {inputs}")
-        starts = []
-        if x0 is not None:
-            starts.append((u, np.asarray(x0, dtype=float)))
-        refs = self.metadata.get("reference_points") or []
-        refs = sorted(refs, key=lambda r: float(np.linalg.norm(np.asarray(r["inputs"]) - u)))
-        starts += [(np.asarray(r["inputs"], dtype=float), np.asarray(r["state"], dtype=float)) for r in refs[:3]]
-        if not starts:
-            starts.append((u, np.zeros(self.n_states)))
-        scale = np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0)
-
-        def accept(x, u_now):
-            return bool(np.max(np.abs(self.vector_field(x, u_now)) / scale) < tol)
-
-        for u_start, x_start in starts:
-            x = root(self.vector_field, self.jacobian, u_start, x_start, accept)
-            if x is not None and not np.allclose(u_start, u):
-                x = continuation(self.vector_field, self.jacobian, u_start, x, u, 20, accept)
-            if x is not None:
-                return x
-        raise EquilibriumNotFound(f"no equilibrium of the model at {dict(zip(self.input_names, u.tolist()))}")
+        refs = self.metadata.get("reference_points") or [{"inputs": u.tolist(), "state": [0.0] * self.n_states}]
+        return find_equilibrium(self.vector_field, self.jacobian, u, refs, x0=x0, tol=tol,
+                                scale=np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0), what="model")
 
     def eigenvalues(self, *inputs: float) -> np.ndarray:
         """Eigenvalues (1/s) at the equilibrium for the given inputs."""

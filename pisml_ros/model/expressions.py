@@ -105,6 +105,7 @@ class TermSet:
         self._symbols = [sympy.Symbol(n, real=True) for n in self.signals]
         self._numpy = None
         self._torch = None
+        self._plan = None
         self._grad = None
 
     def __len__(self):
@@ -118,10 +119,56 @@ class TermSet:
         cols = self._numpy(*np.moveaxis(z, -1, 0))
         return np.stack([np.broadcast_to(c, z.shape[:-1]).astype(float) for c in cols], axis=-1)
 
+    def _product_plan(self):
+        """Every term as a product of factors (signals or non-polynomial sub-expressions such as
+        cos(theta_g - delta)) with positive integer powers, or None when a term is not of that form.
+
+        Returns (factor expressions, index matrix n_terms × max_degree into [1, factors...]).
+        """
+        factors: list = []
+        rows = []
+        for expr in self.exprs:
+            coeff, rest = sympy.expand(expr).as_coeff_Mul()
+            if coeff != 1 or isinstance(rest, sympy.Add):
+                return None
+            row = []
+            for base, power in (rest.as_powers_dict().items() if rest != 1 else []):
+                if not (power.is_Integer and 0 < int(power) <= 4):
+                    return None
+                if base not in factors:
+                    factors.append(base)
+                row += [factors.index(base) + 1] * int(power)
+            rows.append(row)
+        width = max((len(r) for r in rows), default=0) or 1
+        return factors, np.array([r + [0] * (width - len(r)) for r in rows], dtype=np.int64)
+
     def evaluate_torch(self, z):
-        """Term values of a torch tensor (..., n_signals) -> (..., n_terms), differentiable."""
+        """Term values of a torch tensor (..., n_signals) -> (..., n_terms), differentiable.
+
+        Products of signals (the libraries are mostly monomials) are gathered and multiplied in
+        one tensor operation; this keeps training through the ODE solver fast.
+        """
         import torch
 
+        if self._plan is None:
+            plan = self._product_plan()
+            if plan is None:
+                self._plan = False
+            else:
+                factors, index = plan
+                fn = sympy.lambdify(self._symbols, factors, modules=[_torch_module(), "math"], cse=True) \
+                    if factors else None
+                self._plan = (fn, torch.as_tensor(index))
+        if self._plan is not False:
+            fn, index = self._plan
+            ones = torch.ones(z.shape[:-1] + (1,), dtype=z.dtype)
+            cols = [ones]
+            if fn is not None:
+                values = fn(*z.unbind(-1))
+                cols += [v if torch.is_tensor(v) else torch.full(z.shape[:-1], float(v), dtype=z.dtype)
+                         for v in values]
+            base = torch.cat([ones] + [c.unsqueeze(-1) for c in cols[1:]], dim=-1) if len(cols) > 1 else ones
+            return base[..., index].prod(dim=-1)
         if self._torch is None:
             self._torch = sympy.lambdify(self._symbols, self.exprs, modules=[_torch_module(), "math"], cse=True)
         cols = self._torch(*z.unbind(-1))

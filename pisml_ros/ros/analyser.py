@@ -1,74 +1,259 @@
-"""analyser node: small-signal stability reports on /pisml/stability.
+"""analyser node: small-signal stability of identified models on /pisml/stability.
 
-For each configured operating point (``ug_points``) it publishes a
-StabilityReport (transient-local) with eigenvalues, damping, frequencies,
-dominant states and the distance in ug to the nearest stability boundary,
-and a /diagnostics WARN/ERROR when a margin is below its threshold. In this
-version it analyses the virtual HIL plant (``analyse_plant``) and logs models
-arriving on /pisml/model; analysing identified explicit models arrives with
-the engine issue.
+Subscribes to /pisml/model; for every IdentifiedModel that carries an explicit
+model (``model_json``) it computes, at each operating point of ``ug_points``,
+the equilibrium, eigenvalues, damping ratios, frequencies, dominant states and
+the distance in ug to the nearest stability boundary, and publishes one
+StabilityReport per point (transient-local, deep enough to hold them all) plus
+/diagnostics (WARN below the damping / margin thresholds, ERROR when unstable or
+when a model cannot be analysed). The analysis runs in a worker thread: a newer
+model supersedes one still waiting.
+
+Root locus: the eigenvalues over the ug sweep (``sweep_ug_min``..``sweep_ug_max``,
+``sweep_points``) are published as JSON on /pisml/root_locus (std_msgs/String,
+transient-local) and written to ``output_dir`` when set. Setting a ``sweep_*``
+or ``ug_points`` parameter at run time re-runs the analysis of the latest model.
+
+``analyse_plant`` reports on the virtual HIL plant at start-up (model_id "plant").
 """
 from __future__ import annotations
 
-from .common import MODEL_TOPIC, STABILITY_TOPIC, declare, latched_qos, publish_diagnostics, run_node
+import json
+import math
+import threading
+from pathlib import Path
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
+import numpy as np
+
+from .common import MODEL_TOPIC, STABILITY_TOPIC, declare, latched_qos, publish_diagnostics, run_node, status
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from pisml_msgs.msg import IdentifiedModel, StabilityReport  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
 
-from ..analysis.operating_point import operating_point_report, ug_stability_margin  # noqa: E402
-from .conversions import stability_message  # noqa: E402
+from ..analysis.margins import distance_to_boundary, stability_boundaries  # noqa: E402
+from ..analysis.operating_point import operating_point_report  # noqa: E402
+from ..fileio import atomic_write_text  # noqa: E402
+from .conversions import failed_stability_message, model_from_message, stability_message  # noqa: E402
+
+ROOT_LOCUS_TOPIC = "/pisml/root_locus"
+SWEEP_PARAMETERS = ("ug_points", "sweep_ug_min", "sweep_ug_max", "sweep_points", "theta_g")
+
+
+def root_locus(system, grid, theta_g: float = 0.0) -> dict:
+    """Eigenvalues of ``system`` at its equilibria along ``grid`` (values of ug), and the
+    stability boundaries (crossings of the imaginary axis, refined by Brent's method).
+
+    Returns
+    -------
+    dict
+        ``{"ug": [...], "theta_g", "eigenvalues": [[[re, im], ...] or None per ug],
+        "max_real": [... or None], "boundaries": [...], "errors": {ug: message}}``
+    """
+    eig_at, errors = {}, {}
+
+    def max_real(g):
+        g = float(g)
+        if g not in eig_at:
+            x = system.equilibrium(g, theta_g)
+            eig_at[g] = np.linalg.eigvals(system.jacobian(x, np.array([g, theta_g])))
+        return float(np.max(eig_at[g].real))
+
+    for g in grid:
+        try:
+            max_real(g)
+        except Exception as err:  # no equilibrium there: recorded, the sweep goes on
+            errors[f"{float(g):g}"] = str(err)
+    boundaries = stability_boundaries(max_real, [float(g) for g in grid if float(g) in eig_at])
+    out_eig, out_max = [], []
+    for g in grid:
+        lam = eig_at.get(float(g))
+        if lam is None:
+            out_eig.append(None)
+            out_max.append(None)
+        else:
+            lam = lam[np.lexsort((-lam.imag, -lam.real))]
+            out_eig.append([[float(z.real), float(z.imag)] for z in lam])
+            out_max.append(float(np.max(lam.real)))
+    return {"ug": [float(g) for g in grid], "theta_g": float(theta_g), "eigenvalues": out_eig, "max_real": out_max,
+            "boundaries": boundaries, "errors": errors}
 
 
 class AnalyserNode(Node):
     def __init__(self):
         super().__init__("analyser")
-        self.ug_points = list(declare(self, "ug_points", [0.8], "grid voltages (p.u.) of the operating points"))
+        self.ug_points = self._check_points(list(declare(self, "ug_points", [0.8],
+                                                         "grid voltages (p.u.) of the operating points")))
         self.theta_g = declare(self, "theta_g", 0.0, "grid voltage phase (rad) of the operating points", -3.15, 3.15)
         self.min_damping = declare(self, "min_damping_ratio", 0.05, "WARN below this damping ratio", 0.0, 1.0)
         self.min_ug_margin = declare(self, "min_ug_margin", 0.05, "WARN below this distance in ug to a boundary",
                                      0.0, 10.0)
+        self.sweep = [declare(self, "sweep_ug_min", 0.2, "root locus / margin sweep: lowest ug (p.u.)", 0.01, 3.0),
+                      declare(self, "sweep_ug_max", 1.3, "root locus / margin sweep: highest ug (p.u.)", 0.01, 3.0),
+                      declare(self, "sweep_points", 23, "root locus / margin sweep: points (0 = no sweep, "
+                              "no margins)", 0, 1000)]
+        self._check_sweep(*self.sweep)
+        self.output_dir = declare(self, "output_dir", "", "write stability.json and root_locus.json here "
+                                  "(empty = no files)")
         self.analyse_plant = declare(self, "analyse_plant", False, "report on the virtual HIL plant at start-up")
         params_file = declare(self, "params_file", "", "plant parameter file for analyse_plant (empty = nameplate)")
-        if any(not (0.0 < ug < 3.0) for ug in self.ug_points):
-            raise ValueError(f"parameter ug_points: values must be in (0, 3) p.u., got {self.ug_points}")
-        self.stability = self.create_publisher(StabilityReport, STABILITY_TOPIC, latched_qos())
+        # every operating point of a model stays latched for late subscribers
+        self.stability = self.create_publisher(StabilityReport, STABILITY_TOPIC, latched_qos(
+            depth=max(len(self.ug_points), 1)))
+        self.locus = self.create_publisher(String, ROOT_LOCUS_TOPIC, latched_qos())
         self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.lock = threading.Condition()
+        self.pending = None          # (system, model_id) waiting for the worker
+        self.latest = None           # the last analysed (system, model_id): re-run on parameter changes
+        self.statuses = []           # per operating point, of the last analysis
+        self.analysed = 0
+        self.last_error = ""
+        self.failing = False         # the last error came after the last successful analysis
+        self.state = "waiting for a model"
+        self.add_post_set_parameters_callback(self._on_parameters)
         self.create_subscription(IdentifiedModel, MODEL_TOPIC, self._on_model, latched_qos())
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.worker = threading.Thread(target=self._work, daemon=True, name="analyser-worker")
+        self.worker.start()
         if self.analyse_plant:
             from ..plant import InverterPlant, PlantParameters, load_parameters
 
             plant = InverterPlant(load_parameters(params_file) if params_file else PlantParameters())
-            self.report_on(plant, "plant")
+            self._submit(plant, "plant")
 
-    def report_on(self, system, model_id: str):
-        """Publish a StabilityReport per operating point, and diagnostics on the margins."""
-        statuses = []
-        for ug in self.ug_points:
+    # ------------------------------------------------------------------ parameters
+    @staticmethod
+    def _check_points(points):
+        if not points or any(not (0.0 < ug < 3.0) for ug in points):
+            raise ValueError(f"parameter ug_points: values must be in (0, 3) p.u., got {points}")
+        return [float(ug) for ug in points]
+
+    @staticmethod
+    def _check_sweep(low, high, points):
+        if points and not low < high:
+            raise ValueError(f"parameters sweep_ug_min/sweep_ug_max: need min < max, got {low} and {high}")
+
+    def _on_parameters(self, params):
+        changed = {p.name: p.value for p in params if p.name in SWEEP_PARAMETERS}
+        if not changed:
+            return
+        try:
+            points = self._check_points(list(changed.get("ug_points", self.ug_points)))
+            sweep = [changed.get("sweep_ug_min", self.sweep[0]), changed.get("sweep_ug_max", self.sweep[1]),
+                     changed.get("sweep_points", self.sweep[2])]
+            self._check_sweep(*sweep)
+        except ValueError as err:
+            self._error(str(err))
+            return
+        self.ug_points, self.sweep = points, sweep
+        self.theta_g = float(changed.get("theta_g", self.theta_g))
+        if self.latest is not None:
+            self.get_logger().info(f"parameters {sorted(changed)} changed: analysing {self.latest[1]} again")
+            self._submit(*self.latest)
+
+    # ------------------------------------------------------------------ models in
+    def _on_model(self, msg: IdentifiedModel):
+        if not msg.model_json:
+            self.get_logger().info(f"model {msg.model_id} ({msg.stage}) has no explicit form: not analysed")
+            return
+        try:
+            model = model_from_message(msg)
+            if len(model.input_names) != 2:
+                raise ValueError(f"model {msg.model_id!r}: expected 2 inputs (grid magnitude, phase), got "
+                                 f"{list(model.input_names)}")
+        except Exception as err:  # a bad model is reported, never kills the node
+            self._error(f"cannot analyse: {err}")
+            return
+        self.get_logger().info(f"model {msg.model_id} ({msg.stage}, {model.n_parameters} parameters) received")
+        self._submit(model, msg.model_id)
+
+    def _submit(self, system, model_id: str):
+        with self.lock:
+            self.pending = (system, model_id)
+            self.lock.notify()
+
+    def _work(self):
+        while True:
+            with self.lock:
+                while self.pending is None:
+                    self.lock.wait()
+                job, self.pending = self.pending, None
             try:
-                report = operating_point_report(system, ug, self.theta_g)
-                report.update(ug_stability_margin(system, ug, self.theta_g))
-            except Exception as err:  # a model without an equilibrium must not stop the node
-                statuses.append(DiagnosticStatus(level=DiagnosticStatus.ERROR, name=f"pisml: stability ug={ug:g}",
-                                                 message=f"{model_id}: {err}"))
+                self.state = f"analysing {job[1]}"
+                self.report_on(*job)
+                self.latest = job
+                self.analysed += 1
+                self.state = f"analysed {job[1]}"
+                self.failing = False
+                self._publish_diagnostics()
+            except Exception as err:  # anything unexpected is reported; the worker goes on
+                self.state = "failed"
+                self._error(f"{job[1]}: analysis failed: {err}")
+
+    def _error(self, text: str):
+        self.last_error, self.failing = text, True
+        self.get_logger().error(text)
+        self._publish_diagnostics()
+
+    # ------------------------------------------------------------------ analysis
+    def report_on(self, system, model_id: str):
+        """Publish a StabilityReport per operating point, the root locus, and diagnostics on the margins."""
+        theta_g, points = self.theta_g, list(self.ug_points)
+        low, high, n = self.sweep
+        locus = root_locus(system, np.linspace(low, high, n), theta_g) if n else None
+        statuses, reports = [], {}
+        names = tuple(system.state_names) + tuple(getattr(system, "hidden_state_names", ()))
+        for ug in points:
+            name = f"pisml: stability ug={ug:g}"
+            stamp = self.get_clock().now().to_msg()
+            try:
+                report = operating_point_report(system, ug, theta_g)
+            except Exception as err:  # a model without an equilibrium there must not stop the node
+                self.stability.publish(failed_stability_message(model_id, ug, theta_g, f"no equilibrium: {err}",
+                                                                names, stamp))
+                statuses.append(status(name, DiagnosticStatus.ERROR, f"{model_id}: no equilibrium: {err}"))
                 continue
-            self.stability.publish(stability_message(report, model_id, self.get_clock().now().to_msg()))
+            report["boundaries"] = locus["boundaries"] if locus else []
+            report["ug_margin"] = distance_to_boundary(ug, locus["boundaries"]) if locus else math.nan
+            reports[f"{ug:g}"] = report
+            msg = stability_message(report, model_id, stamp)
             level, message = DiagnosticStatus.OK, "stable"
             if not report["stable"]:
                 level, message = DiagnosticStatus.ERROR, "unstable"
             elif report["min_damping"] < self.min_damping or report["ug_margin"] < self.min_ug_margin:
                 level, message = DiagnosticStatus.WARN, "margin below threshold"
-            status = DiagnosticStatus(level=level, name=f"pisml: stability ug={ug:g}", message=f"{model_id}: {message}")
-            status.values = [KeyValue(key="max_real_part", value=f"{report['max_real']:.6g}"),
-                             KeyValue(key="min_damping_ratio", value=f"{report['min_damping']:.6g}"),
-                             KeyValue(key="ug_margin", value=f"{report['ug_margin']:.6g}")]
-            statuses.append(status)
-            self.get_logger().info(f"{model_id} at ug={ug:g}: {message}, max real part {report['max_real']:.4g} 1/s")
-        publish_diagnostics(self, self.diagnostics, statuses)
+            msg.message = message
+            self.stability.publish(msg)
+            statuses.append(status(name, level, f"{model_id}: {message}", {
+                "max_real_part": f"{report['max_real']:.6g}", "min_damping_ratio": f"{report['min_damping']:.6g}",
+                "ug_margin": f"{report['ug_margin']:.6g}", "model_id": model_id}))
+            self.get_logger().info(f"{model_id} at ug={ug:g}: {message}, max real part {report['max_real']:.4g} 1/s, "
+                                   f"ug margin {report['ug_margin']:.4g}")
+        if locus is not None:
+            locus["model_id"] = model_id
+            self.locus.publish(String(data=json.dumps(locus)))
+            self.get_logger().info(f"{model_id}: stability boundaries in ug {[round(b, 4) for b in locus['boundaries']]}")
+        if self.output_dir:
+            out = Path(self.output_dir)
+            atomic_write_text(out / "stability.json", json.dumps(
+                {"model_id": model_id, "theta_g": theta_g, "operating_points": reports}, indent=1,
+                default=_json_float) + "\n")
+            if locus is not None:
+                atomic_write_text(out / "root_locus.json", json.dumps(locus, default=_json_float) + "\n")
+        self.statuses = statuses
 
-    def _on_model(self, msg: IdentifiedModel):
-        self.get_logger().info(f"model {msg.model_id} ({msg.stage}) received; explicit-model analysis "
-                               f"arrives with the engine")
+    def _publish_diagnostics(self):
+        level = DiagnosticStatus.ERROR if self.failing else DiagnosticStatus.OK
+        own = status("pisml: analyser", level, self.last_error if self.failing else self.state,
+                     {"models_analysed": self.analysed, "state": self.state, "last_error": self.last_error})
+        publish_diagnostics(self, self.diagnostics, [own] + list(self.statuses))
+
+
+def _json_float(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise TypeError(type(obj).__name__)
 
 
 def main(args=None) -> int:

@@ -21,9 +21,9 @@ def measurement_qos(depth: int = 5000) -> QoSProfile:
                       durability=DurabilityPolicy.VOLATILE)
 
 
-def latched_qos() -> QoSProfile:
-    """Transient-local, depth 1: a late subscriber still gets the latest model or report."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+def latched_qos(depth: int = 1) -> QoSProfile:
+    """Transient-local (default depth 1): a late subscriber still gets the latest model or report(s)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 

@@ -1,10 +1,16 @@
 """Message conversions between pisml_msgs and the core's plain Python objects."""
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
-from pisml_msgs.msg import MeasurementBatch, ModeInfo, StabilityReport  # noqa: F401
+from pisml_msgs.msg import IdentifiedModel, MeasurementBatch, ModeInfo, StabilityReport  # noqa: F401
+
+#: the message stages (IdentifiedModel.stage)
+STAGES = ("backbone", "hybrid", "explicit")
+HYBRID_NOTE = ("hybrid model = sparse backbone + neural residual N(x, u): it has no explicit form, so model_json, "
+               "terms and coefficients are empty; the backbone equations below omit N")
 
 
 def batch_message(traj, start: int, stop: int, last: bool, dt: float, state_names, input_names, stamp=None):
@@ -84,3 +90,155 @@ def gap_message(report: dict, reference: str, stamp=None):
     msg.effect_missing = bool(report["effects"])
     msg.report_json = json.dumps(report, default=float)
     return msg
+
+
+def _finite_metrics(metrics: dict | None) -> tuple[list[str], list[float]]:
+    names, values = [], []
+    for key, value in (metrics or {}).items():
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            continue
+        names.append(str(key))
+        values.append(value)
+    return names, values
+
+
+def model_message(model, stage: str, model_id: str, metrics: dict | None = None, stamp=None) -> IdentifiedModel:
+    """An IdentifiedModel for one stage of an identification run.
+
+    ``model`` is an :class:`~pisml_ros.model.ExplicitModel` (its JSON travels in
+    ``model_json``), a hybrid model with a ``backbone`` ExplicitModel (no JSON: the
+    backbone alone is not a correct description; the equations say so), or any other
+    model (e.g. a neural ODE: names and metrics only).
+    """
+    from ..model import ExplicitModel
+
+    if stage not in STAGES:
+        raise ValueError(f"stage {stage!r} is not one of {STAGES}")
+    msg = IdentifiedModel()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.header.frame_id = "pisml"
+    msg.model_id = str(model_id)
+    msg.stage = stage
+    metrics = dict(metrics or {})
+    if isinstance(model, ExplicitModel):
+        msg.state_names = list(model.state_names)
+        msg.input_names = list(model.input_names)
+        msg.terms = list(model.terms)
+        msg.coefficients = np.ascontiguousarray(model.coefficients, dtype=float).ravel().tolist()
+        msg.equations = model.equations()
+        msg.n_parameters = int(model.n_parameters)
+        msg.model_json = model.to_json()
+    else:
+        backbone = getattr(model, "backbone", None)
+        names_from = backbone if isinstance(backbone, ExplicitModel) else model
+        msg.state_names = [str(n) for n in getattr(names_from, "state_names", ())]
+        msg.input_names = [str(n) for n in getattr(names_from, "input_names", ())]
+        if isinstance(backbone, ExplicitModel):
+            msg.equations = [HYBRID_NOTE] + [f"{eq} + N_{name}(x, u)"
+                                             for eq, name in zip(backbone.equations(), backbone.state_names)]
+            metrics.setdefault("backbone_n_parameters", backbone.n_parameters)
+        else:
+            msg.equations = [f"{type(model).__name__}: no explicit form"]
+        n_params = getattr(model, "n_parameters", 0)
+        msg.n_parameters = int(n_params) if n_params is not None else 0
+    msg.metric_names, msg.metric_values = _finite_metrics(metrics)
+    return msg
+
+
+def message_metrics(msg) -> dict:
+    """The metrics of an IdentifiedModel (or an Identify result) as a dict."""
+    return dict(zip(msg.metric_names, msg.metric_values))
+
+
+def model_from_message(msg):
+    """The ExplicitModel carried by an IdentifiedModel.
+
+    Raises
+    ------
+    ModelFormatError
+        Empty or malformed ``model_json`` (the message names the model and the field).
+    """
+    from ..model import ExplicitModel, ModelFormatError
+
+    where = f"model {msg.model_id!r} ({msg.stage})"
+    if not msg.model_json:
+        raise ModelFormatError(f"{where}: model_json is empty")
+    try:
+        data = json.loads(msg.model_json)
+    except json.JSONDecodeError as err:
+        raise ModelFormatError(f"{where}: model_json is not valid JSON ({err.msg} at line {err.lineno})") from None
+    return ExplicitModel.from_dict(data, source=where)
+
+
+def overrides_from_fields(names, values, where: str = "overrides") -> dict:
+    """``override_names``/``override_values`` (strings side by side) as a settings mapping.
+
+    Values that parse as JSON become numbers, booleans, lists or mappings; anything else stays a string.
+    """
+    names, values = list(names), list(values)
+    if len(names) != len(values):
+        raise ValueError(f"{where}: {len(names)} names but {len(values)} values")
+    out = {}
+    for name, value in zip(names, values):
+        if not name:
+            raise ValueError(f"{where}: empty name")
+        try:
+            out[str(name)] = json.loads(value)
+        except (TypeError, ValueError):
+            out[str(name)] = value
+    return out
+
+
+def overrides_from_assignments(items, where: str = "overrides") -> dict:
+    """``["epochs=20", "refine=false"]`` as a settings mapping (values parsed as in :func:`overrides_from_fields`)."""
+    names, values = [], []
+    for item in items:
+        if not item:
+            continue
+        if "=" not in item:
+            raise ValueError(f"{where}: {item!r} is not KEY=VALUE")
+        key, value = item.split("=", 1)
+        names.append(key.strip())
+        values.append(value.strip())
+    return overrides_from_fields(names, values, where)
+
+
+def failed_stability_message(model_id: str, ug: float, theta_g: float, error: str, state_names=(),
+                             stamp=None, input_names=("ug", "theta_g")) -> StabilityReport:
+    """A StabilityReport for an operating point where the model has no equilibrium (``equilibrium_found`` false)."""
+    msg = StabilityReport()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.model_id = model_id
+    msg.input_names = list(input_names)
+    msg.input_values = [float(ug), float(theta_g)]
+    msg.state_names = list(state_names)
+    msg.equilibrium_found = False
+    msg.max_real_part = math.nan
+    msg.min_damping_ratio = math.nan
+    msg.stable = False
+    msg.ug_margin = math.nan
+    msg.message = str(error)
+    return msg
+
+
+def stability_dict(msg) -> dict:
+    """A StabilityReport as a JSON-ready dict (the shape of ``operating_point_report`` plus the margin)."""
+    return {
+        "model_id": msg.model_id,
+        "operating_point": dict(zip(msg.input_names, msg.input_values),
+                                state=dict(zip(msg.state_names, msg.equilibrium))),
+        "equilibrium_found": bool(msg.equilibrium_found),
+        "eigenvalues": [[float(re), float(im)] for re, im in zip(msg.eigenvalues_real, msg.eigenvalues_imag)],
+        "damping": [float(z) for z in msg.damping_ratios],
+        "frequencies_hz": [float(f) for f in msg.frequencies],
+        "dominant_states": [list(m.dominant_states) for m in msg.modes],
+        "max_real": float(msg.max_real_part),
+        "min_damping": float(msg.min_damping_ratio),
+        "stable": bool(msg.stable),
+        "ug_margin": float(msg.ug_margin),
+        "message": msg.message,
+    }

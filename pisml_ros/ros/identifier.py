@@ -1,45 +1,148 @@
-"""identifier node: assembles MeasurementBatch messages into trajectories.
+"""identifier node: measurements in, identified models out, stage by stage.
 
-This version buffers and validates (malformed batches are rejected with a
-diagnostic; the node keeps running) and reports the buffer on /diagnostics.
-The identification engine and the /pisml/model stages arrive with the engine
-issue; the parameters that will drive it are declared already.
+Assembles MeasurementBatch messages into trajectories (gaps, reordering and
+restarts handled by :class:`~pisml_ros.data.stream.TrajectoryBuffer`; malformed
+batches are rejected with a diagnostic and the node keeps running). Training
+runs in a worker thread (the executor never blocks): automatically once
+``min_trajectories`` complete trajectories are buffered (``retrain_policy``:
+``once`` | ``on_new_data`` | ``manual``), or on request through the
+``~/identify`` action (data source "buffer" or a CSV/bag path, method,
+configuration overrides; feedback per engine update; cancellable).
+
+Every stage's model is published on /pisml/model (transient-local, depth 1):
+the sparse backbone first, then the hybrid (backbone + neural residual: no
+explicit form, so ``model_json`` is empty), then the explicit model, whose
+metrics include ``final = 1``. Explicit models are saved atomically to
+``output_dir`` as ``model_<stage>.json`` and ``latest.json``; the update log and
+the engine's training curves go to ``history.json``. ``initial_model`` publishes
+a saved model at start-up. /diagnostics carries the buffer, the stage, the
+progress, the latest losses and the last error.
 """
 from __future__ import annotations
 
-from .common import MEASUREMENT_TOPIC, declare, measurement_qos, publish_diagnostics, run_node, status
+import json
+import queue
+import threading
+import time
+from pathlib import Path
+
+from .common import MEASUREMENT_TOPIC, MODEL_TOPIC, declare, latched_qos, measurement_qos, publish_diagnostics, \
+    run_node, status
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from pisml_msgs.msg import MeasurementBatch  # noqa: E402
+from pisml_msgs.action import Identify  # noqa: E402
+from pisml_msgs.msg import IdentifiedModel, MeasurementBatch  # noqa: E402
+from rclpy.action import ActionServer, CancelResponse, GoalResponse  # noqa: E402
+from rclpy.callback_groups import ReentrantCallbackGroup  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
-from ..data import DataError, validate_batch  # noqa: E402
+from ..data import DataError, read_dataset, validate_batch  # noqa: E402
 from ..data.stream import TrajectoryBuffer  # noqa: E402
+from ..fileio import atomic_write_text, json_default  # noqa: E402
+from ..ident import IdentConfig  # noqa: E402
+from ..model import ExplicitModel  # noqa: E402
+from .conversions import model_message, overrides_from_assignments, overrides_from_fields  # noqa: E402
+
+RETRAIN_POLICIES = ("once", "on_new_data", "manual")
+
+
+class Job:
+    """One identification run in the worker thread."""
+
+    def __init__(self, run: int, method: str, config: IdentConfig, data, origin: str, goal_handle=None):
+        self.run, self.method, self.config, self.data, self.origin = run, method, config, data, origin
+        self.model_id = f"{method}-{run}"
+        self.goal_handle = goal_handle
+        self.stop = threading.Event()
+        self.done = threading.Event()
+        self.feedback: queue.Queue = queue.Queue()
+        self.stage, self.progress, self.epoch, self.losses = "starting", 0.0, 0, {}
+        self.result: IdentifiedModel | None = None
+        self.metrics: dict = {}
+        self.error = ""
+        self.cancelled = False
+
+    def should_stop(self) -> bool:
+        handle = self.goal_handle
+        return self.stop.is_set() or (handle is not None and handle.is_cancel_requested)
+
+
+def _message_stage(engine_stage: str, model) -> str:
+    if isinstance(model, ExplicitModel):
+        return "backbone" if engine_stage == "backbone" else "explicit"
+    return "hybrid"
 
 
 class IdentifierNode(Node):
     def __init__(self):
         super().__init__("identifier")
+        from ..ident import METHODS
+
         self.min_trajectories = declare(self, "min_trajectories", 12,
                                         "complete trajectories needed before training starts", 1, 10000)
-        self.method = declare(self, "method", "pisml", "pisml | std-sindy | mod-sindy | node | pisml-nojac")
-        declare(self, "output_dir", "out/identifier", "where explicit models are saved (atomically)")
+        self.method = declare(self, "method", "pisml", " | ".join(METHODS))
+        if self.method not in METHODS:
+            raise ValueError(f"parameter method: {self.method!r} is not one of {', '.join(METHODS)}")
+        self.retrain_policy = declare(self, "retrain_policy", "once",
+                                      "automatic training: once (first time min_trajectories are buffered) | "
+                                      "on_new_data (again after retrain_min_new_trajectories more) | manual "
+                                      "(only through the ~/identify action)")
+        if self.retrain_policy not in RETRAIN_POLICIES:
+            raise ValueError(f"parameter retrain_policy: {self.retrain_policy!r} is not one of "
+                             f"{', '.join(RETRAIN_POLICIES)}")
+        self.retrain_min_new = declare(self, "retrain_min_new_trajectories", 4,
+                                       "on_new_data: new complete trajectories that trigger a retraining", 1, 10000)
+        self.output_dir = declare(self, "output_dir", "out/identifier",
+                                  "where explicit models and history.json are saved, atomically (empty = nowhere)")
+        config_file = declare(self, "config_file", "", "identification settings YAML/JSON (empty = defaults)")
+        overrides = declare(self, "overrides", [""], "identification settings as KEY=VALUE (over config_file)")
+        smallsignal_path = declare(self, "smallsignal_path", "",
+                                   "CSV/bag of small-signal records passed to the engine (empty = none)")
+        initial_model = declare(self, "initial_model", "", "explicit model JSON published at start-up (empty = none)")
         max_samples = declare(self, "max_buffer_samples", 2_000_000, "samples kept in the buffer (oldest dropped)",
                               1000, 100_000_000)
         depth = declare(self, "qos_depth", 5000, "depth of the reliable measurement queue", 10, 1000000)
+        # configuration errors surface now (exit status 2), not at the first training
+        self.base_overrides = overrides_from_assignments(overrides, "parameter overrides")
+        self.config_file = config_file
+        self.config = IdentConfig.load(config_file or None, self.base_overrides)
+        self.smallsignal = read_dataset(_resolve(smallsignal_path, "smallsignal_path")) if smallsignal_path else None
+
         self.buffer = TrajectoryBuffer(max_samples=max_samples)
+        self.lock = threading.RLock()
         self.rejected = 0
         self.last_error = ""
-        self.create_subscription(MeasurementBatch, MEASUREMENT_TOPIC, self._on_batch, measurement_qos(depth))
-        self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info(f"listening on {MEASUREMENT_TOPIC}; training needs {self.min_trajectories} trajectories")
+        self.events: list[str] = []
+        self.job: Job | None = None
+        self.runs = 0
+        self.trained_at = None          # buffer.next_uid when the last automatic run started
+        self.last_model = ""            # model_id and stage of the last publication
+        self.history: list[dict] = []   # engine updates of this node's runs (losses over time)
+        self._last_diag = 0.0
 
+        self.model_pub = self.create_publisher(IdentifiedModel, MODEL_TOPIC, latched_qos())
+        self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(MeasurementBatch, MEASUREMENT_TOPIC, self._on_batch, measurement_qos(depth))
+        self.action = ActionServer(self, Identify, "~/identify", execute_callback=self._execute,
+                                   goal_callback=self._on_goal, cancel_callback=lambda _: CancelResponse.ACCEPT,
+                                   callback_group=ReentrantCallbackGroup())
+        self.create_timer(1.0, self._tick)
+        if initial_model:
+            model = ExplicitModel.load(initial_model)
+            self._publish_model(model, "explicit", f"initial:{Path(initial_model).stem}",
+                                {"final": 1.0, "initial": 1.0})
+        self.get_logger().info(
+            f"listening on {MEASUREMENT_TOPIC}; method {self.method}, retrain_policy {self.retrain_policy}"
+            f"{'' if self.retrain_policy == 'manual' else f', training after {self.min_trajectories} trajectories'}"
+            f"{f'; small-signal data {smallsignal_path} ({len(self.smallsignal)} records)' if self.smallsignal else ''}")
+
+    # ------------------------------------------------------------------ measurements
     def _on_batch(self, msg: MeasurementBatch):
         try:
             arrays = validate_batch(msg, where="batch")
-            event = self.buffer.add(int(msg.trajectory_id), int(msg.first_sample_index), float(msg.t0), arrays,
-                                    bool(msg.end_of_trajectory))
+            with self.lock:
+                event = self.buffer.add(int(msg.trajectory_id), int(msg.first_sample_index), float(msg.t0), arrays,
+                                        bool(msg.end_of_trajectory))
         except DataError as err:
             self.rejected += 1
             self.last_error = str(err)
@@ -48,13 +151,236 @@ class IdentifierNode(Node):
             return
         if event:
             self.get_logger().info(event)
+            self._maybe_train()
+
+    def _running(self) -> bool:
+        return self.job is not None and not self.job.done.is_set()
+
+    def _maybe_train(self):
+        if self.retrain_policy == "manual":
+            return
+        with self.lock:
+            if self._running() or len(self.buffer.complete) < self.min_trajectories:
+                return
+            if self.trained_at is not None and (
+                    self.retrain_policy == "once" or self.buffer.next_uid - self.trained_at < self.retrain_min_new):
+                return
+            self.trained_at = self.buffer.next_uid
+            data = self.buffer.dataset()
+            self._start_job(self.method, self.config, data, f"buffer ({len(data)} trajectories, automatic)")
+
+    # ------------------------------------------------------------------ the worker
+    def _start_job(self, method, config, data, origin, goal_handle=None) -> Job:
+        with self.lock:
+            self.runs += 1
+            job = Job(self.runs, method, config, data, origin, goal_handle)
+            self.job = job
+        self.get_logger().info(f"run {job.model_id}: training {method} on {origin}, {data.n_samples} samples"
+                               f"{', with small-signal data' if self.smallsignal is not None else ''}")
+        threading.Thread(target=self._run_job, args=(job,), daemon=True, name=f"identify-{job.run}").start()
+        return job
+
+    def _run_job(self, job: Job):
+        from ..ident import IdentificationCancelled, make_estimator
+
+        started = time.monotonic()
+
+        def callback(update):
+            job.stage, job.progress, job.epoch = update.stage, float(update.progress), int(update.epoch)
+            job.losses = {k: float(v) for k, v in update.losses.items() if _is_number(v)}
+            self.history.append({"run": job.model_id, "t": round(time.monotonic() - started, 3),
+                                 "stage": update.stage, "progress": job.progress, "epoch": job.epoch,
+                                 "losses": job.losses})
+            if job.goal_handle is not None:
+                job.feedback.put((update.stage, job.progress, job.epoch, dict(job.losses)))
+            if update.model is not None and update.stage != "explicit":  # the final one goes out with all metrics
+                stage = _message_stage(update.stage, update.model)
+                metrics = dict(job.losses, progress=job.progress, seconds=time.monotonic() - started)
+                self._publish_model(update.model, stage, job.model_id, metrics)
+                self._save_history(None)
+            if time.monotonic() - self._last_diag > 0.5:
+                self._publish_diagnostics()
+
+        try:
+            estimator = make_estimator(job.method, job.config)
+            estimator.fit(job.data, self.smallsignal, callback=callback, should_stop=job.should_stop)
+            final = estimator.explicit_model_ if estimator.explicit_model_ is not None else estimator.model_
+            metrics = {k: v for k, v in estimator.metrics_.items() if _is_number(v)}
+            metrics.update(final=1.0, train_trajectories=len(job.data), train_samples=job.data.n_samples,
+                           wall_seconds=time.monotonic() - started)
+            stage = _message_stage("explicit", final)
+            job.result = self._publish_model(final, stage, job.model_id, metrics)
+            job.metrics = metrics
+            job.stage, job.progress = "done", 1.0
+            self._save_history(estimator)
+            self.get_logger().info(f"run {job.model_id} done in {time.monotonic() - started:.1f} s: {stage} model, "
+                                   f"{job.result.n_parameters} parameters")
+        except IdentificationCancelled as err:
+            job.cancelled, job.stage = True, "cancelled"
+            self.get_logger().info(f"run {job.model_id}: {err}")
+        except Exception as err:  # a failed run is reported, never kills the node
+            job.error = f"run {job.model_id} failed: {type(err).__name__}: {err}"
+            job.stage = "failed"
+            self.last_error = job.error
+            self.get_logger().error(job.error)
+        finally:
+            job.done.set()
+            self._publish_diagnostics()
+        self._maybe_train()  # data that arrived meanwhile
+
+    def _publish_model(self, model, stage: str, model_id: str, metrics: dict) -> IdentifiedModel:
+        msg = model_message(model, stage, model_id, metrics, self.get_clock().now().to_msg())
+        self.model_pub.publish(msg)
+        self.last_model = f"{model_id} ({stage})"
+        self.get_logger().info(f"published {self.last_model}: {msg.n_parameters} parameters")
+        if self.output_dir and isinstance(model, ExplicitModel):
+            try:
+                out = Path(self.output_dir)
+                model.save(out / f"model_{stage}.json")
+                model.save(out / "latest.json")
+            except OSError as err:
+                self.last_error = f"cannot save the model in {self.output_dir}: {err}"
+                self.get_logger().error(self.last_error)
+        return msg
+
+    def _save_history(self, estimator):
+        if not self.output_dir:
+            return
+        data = {"updates": list(self.history)}
+        if estimator is not None:
+            data["training"] = getattr(estimator, "history_", {})
+            data["metrics"] = getattr(estimator, "metrics_", {})
+        try:
+            atomic_write_text(Path(self.output_dir) / "history.json", json.dumps(data, default=_json_any) + "\n")
+        except OSError as err:
+            self.last_error = f"cannot save the history in {self.output_dir}: {err}"
+
+    # ------------------------------------------------------------------ the action
+    def _on_goal(self, request):
+        if request.source != "buffer" and not request.source:
+            self.get_logger().warning("identify goal rejected: empty source")
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
+
+    def _execute(self, goal_handle):
+        req = goal_handle.request
+        result = Identify.Result()
+        try:
+            method = req.method or self.method
+            from ..ident import METHODS
+
+            if method not in METHODS:
+                raise ValueError(f"method {method!r} is not one of {', '.join(METHODS)}")
+            overrides = dict(self.base_overrides)
+            overrides.update(overrides_from_fields(req.override_names, req.override_values, "goal overrides"))
+            config = IdentConfig.load(self.config_file or None, overrides)
+            if req.source == "buffer":
+                with self.lock:
+                    if not self.buffer.complete:
+                        raise ValueError("source buffer: no complete trajectories received yet")
+                    data = self.buffer.dataset()
+                origin = f"buffer ({len(data)} trajectories, action)"
+            else:
+                data = read_dataset(req.source)
+                origin = req.source
+        except Exception as err:  # bad goals are answered, not raised
+            goal_handle.abort()
+            result.success, result.message = False, f"rejected: {err}"
+            self.get_logger().warning(f"identify goal: {result.message}")
+            return result
+        # one run at a time: wait for a running one (automatic or another goal)
+        while True:
+            with self.lock:
+                if not self._running():
+                    job = self._start_job(method, config, data, origin, goal_handle)
+                    break
+            if goal_handle.is_cancel_requested:
+                goal_handle.canceled()
+                result.success, result.message = False, "cancelled before it started"
+                return result
+            goal_handle.publish_feedback(Identify.Feedback(stage="waiting", progress=0.0))
+            time.sleep(0.2)
+        while True:
+            finished = job.done.wait(0.1)
+            while True:
+                try:
+                    stage, progress, epoch, losses = job.feedback.get_nowait()
+                except queue.Empty:
+                    break
+                goal_handle.publish_feedback(Identify.Feedback(
+                    stage=stage, progress=progress, epoch=epoch, loss_names=list(losses),
+                    loss_values=[float(v) for v in losses.values()]))
+            if finished:
+                break
+        if job.cancelled:
+            goal_handle.canceled()
+            result.success, result.message = False, f"{job.model_id}: cancelled"
+        elif job.error:
+            goal_handle.abort()
+            result.success, result.message = False, job.error
+        else:
+            goal_handle.succeed()
+            result.success, result.message = True, f"{job.model_id}: {job.result.stage} model"
+            result.model = job.result
+            result.metric_names = list(job.metrics)
+            result.metric_values = [float(v) for v in job.metrics.values()]
+        return result
+
+    # ------------------------------------------------------------------ diagnostics
+    def _tick(self):
+        self._maybe_train()
+        self._publish_diagnostics()
 
     def _publish_diagnostics(self):
-        values = dict(self.buffer.stats(), rejected_batches=self.rejected, stage="buffering",
-                      last_error=self.last_error)
+        self._last_diag = time.monotonic()
+        with self.lock:
+            values = dict(self.buffer.stats(), rejected_batches=self.rejected)
+            gaps = self.buffer.gaps()
+        job = self.job
+        if job is None:
+            stage = "buffering" if self.retrain_policy != "manual" or not values["complete_trajectories"] else "idle"
+            values.update(stage=stage, progress="0")
+        else:
+            values.update(stage=job.stage, progress=f"{job.progress:.3f}", epoch=job.epoch, run=job.model_id,
+                          method=job.method)
+            values.update({f"loss.{k}": f"{v:.6g}" for k, v in job.losses.items()})
+        values.update(runs=self.runs, last_model=self.last_model, last_error=self.last_error,
+                      gap_details="; ".join(gaps))
         level = DiagnosticStatus.WARN if self.last_error else DiagnosticStatus.OK
-        publish_diagnostics(self, self.diagnostics,
-                            [status("pisml: identifier", level, self.last_error or "buffering", values)])
+        message = self.last_error or (f"{values['stage']} {float(values['progress']) * 100:.0f} %"
+                                      if job is not None else values["stage"])
+        publish_diagnostics(self, self.diagnostics, [status("pisml: identifier", level, message, values)])
+
+    def destroy_node(self):
+        if self.job is not None:
+            self.job.stop.set()
+        super().destroy_node()
+
+
+def _resolve(path: str, parameter: str) -> Path:
+    """A relative data path: from the working directory, else from the source tree (bags/ of a checkout)."""
+    candidates = [Path(path)]
+    if not Path(path).is_absolute():
+        candidates.append(Path(__file__).resolve().parents[2] / path)
+    for candidate in candidates:
+        if candidate.exists():
+            return candidate
+    raise ValueError(f"parameter {parameter}: {path} not found (looked in {[str(c) for c in candidates]})")
+
+
+def _is_number(value) -> bool:
+    try:
+        float(value)
+        return True
+    except (TypeError, ValueError):
+        return False
+
+
+def _json_any(obj):
+    try:
+        return json_default(obj)
+    except TypeError:
+        return str(obj)
 
 
 def main(args=None) -> int:

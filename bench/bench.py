@@ -1,0 +1,230 @@
+"""Identification benchmark on the virtual HIL with the paper's protocol (DESIGN.md).
+
+    python bench/bench.py [--quick] [--out bench/results.json]
+
+Measures, against the clean truth:
+  (i)   IOD/OOD error of every method (pisml, pisml-nojac, std-sindy, mod-sindy, node), clean and
+        40 dB, on the standard plant and on a plant whose current limit is active in part of the
+        training data;
+  (ii)  Wasserstein distance between identified and true spectra at ug = 0.8 and across 0.2-1.2,
+        spurious unstable modes, and an eigenvalue figure;
+  (iii) hybrid vs distilled error over ug 0.2-1.2 (PISML);
+  (iv)  parameter counts; (v) error vs number of trajectories and vs SNR (full mode);
+  (vi)  wall time of each method.
+Writes the results JSON, bench/RESULTS.md and figures in bench/figures/. Prints one line per fit.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum_wasserstein
+from pisml_ros.ident import IdentConfig, make_estimator
+from pisml_ros.plant import InverterPlant
+from pisml_ros.plant.noise import add_measurement_noise
+from pisml_ros.plant.scenarios import Schedule, generate, schedules_for
+from pisml_ros.signals import SCORED_STATES
+
+METHODS = ("pisml", "pisml-nojac", "mod-sindy", "std-sindy", "node")
+PLANTS = {"standard": {}, "saturation": {"current_limit": {"imax": 2.2}}}
+UG_GRID = [0.2, 0.4, 0.6, 0.8, 1.0, 1.1, 1.2]
+BENCH = Path(__file__).resolve().parent
+
+
+def datasets(effects, snr, seed=0, n_traj=12):
+    plant = InverterPlant(effects=effects or None)
+    train = generate(plant, *schedules_for("train", seed=seed, n_traj=n_traj))
+    small = generate(plant, *schedules_for("smallsignal"))
+    test = generate(plant, *schedules_for("test"))
+    if snr is not None:
+        train = add_measurement_noise(train, snr, seed=seed + 101)
+        small = add_measurement_noise(small, snr, seed=seed + 202)
+    return plant, train, small, test
+
+
+def ug_sweep_set(plant):
+    """One trajectory per ug of the grid: from equilibrium, an 8° phase jump at 8 ms and a 10 % sag at 20 ms."""
+    schedules = [Schedule(g, 0.0, [(0.008, "theta_g", math.radians(8.0)), (0.02, "ug", 0.9 * g)], label=f"ug-{g}")
+                 for g in UG_GRID]
+    return generate(plant, schedules, 0.04)
+
+
+def sweep_errors(model, sweep):
+    cols = sweep.state_index(SCORED_STATES)
+    pred = model.simulate(sweep)
+    return [relative_error(p.x[:, cols], t.x[:, cols]) for p, t in zip(pred, sweep)]
+
+
+def spectra(model, grid):
+    out = {}
+    for g in grid:
+        try:
+            out[g] = np.asarray(model.eigenvalues(g, 0.0))
+        except Exception:  # no equilibrium found: counts as a failed spectrum
+            out[g] = None
+    return out
+
+
+def finite(x):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, label):
+    started = time.monotonic()
+    row = {"case": label, "method": method}
+    try:
+        est = make_estimator(method, config).fit(train, small)
+    except Exception as err:  # a failed fit is a result, not a crash of the benchmark
+        row.update(error=f"{type(err).__name__}: {err}", seconds=time.monotonic() - started)
+        traceback.print_exc()
+        return row, None
+    row["seconds"] = time.monotonic() - started
+    row["n_parameters"] = int(est.model_.n_parameters)
+    for key in ("backbone_seconds", "hybrid_seconds", "distill_seconds", "refine_seconds"):
+        if key in est.metrics_:
+            row[key] = est.metrics_[key]
+    errs = protocol_errors(est.model_, test)
+    row.update(iod=finite(errs["iod"]), ood=finite(errs["ood"]))
+    model_spectra = spectra(est.model_, UG_GRID)
+    w = {g: (spectrum_wasserstein(model_spectra[g], truth_spectra[g]) if model_spectra[g] is not None else None)
+         for g in UG_GRID}
+    row["wasserstein_ug08"] = finite(w[0.8])
+    vals = [v for v in w.values() if v is not None and np.isfinite(v)]
+    row["wasserstein_mean"] = float(np.mean(vals)) if len(vals) == len(UG_GRID) else None
+    row["spectra_found"] = sum(v is not None for v in model_spectra.values())
+    row["spurious_unstable"] = [g for g in UG_GRID if g <= 1.1 and model_spectra[g] is not None
+                                and model_spectra[g].real.max() > 0 > truth_spectra[g].real.max()]
+    row["missed_unstable"] = [g for g in UG_GRID if truth_spectra[g].real.max() > 0
+                              and (model_spectra[g] is None or model_spectra[g].real.max() <= 0)]
+    if hasattr(est, "hybrid_"):
+        row["hybrid_parameters"] = int(est.hybrid_.n_parameters)
+        row["sweep_hybrid"] = [finite(e) for e in sweep_errors(est.hybrid_, sweep)]
+        row["sweep_explicit"] = [finite(e) for e in sweep_errors(est.model_, sweep)]
+    row["_spectrum_ug08"] = None if model_spectra[0.8] is None else [[z.real, z.imag] for z in model_spectra[0.8]]
+    return row, est
+
+
+def fmt(v, digits=3):
+    if v is None:
+        return "—"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def write_markdown(results, path):
+    lines = ["# Identification benchmark results", "",
+             f"Generated by `{results['command']}` on {results['machine']} ({results['date']}); "
+             f"mode {results['mode']}, total {results['total_seconds']:.0f} s.", "",
+             "Errors ε (%) against the clean truth: IOD = test trajectory with the phase jump, 0–20 ms; "
+             "OOD = sag to 0.4 p.u., 20–40 ms. W = Wasserstein distance of spectra (1/s). "
+             "'—' = failed (diverged / no equilibrium).", "",
+             "| plant | noise | method | IOD % | OOD % | W(ug 0.8) | W mean 0.2–1.2 | spurious unstable | "
+             "nonzero params | time s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results["runs"]:
+        if r.get("sweep") != "main":
+            continue
+        lines.append(f"| {r['plant']} | {r['noise']} | {r['method']} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
+                     f"{fmt(r.get('wasserstein_ug08'))} | {fmt(r.get('wasserstein_mean'))} | "
+                     f"{', '.join(map(str, r.get('spurious_unstable', []))) or ('error' if 'error' in r else 'none')} | "
+                     f"{r.get('n_parameters', '—')} | {fmt(r.get('seconds'))} |")
+    hyb = [r for r in results["runs"] if r.get("sweep_hybrid") and r.get("sweep") == "main"]
+    if hyb:
+        lines += ["", "## Hybrid vs distilled (PISML), error % over ug (phase jump + 10 % sag from each ug)", "",
+                  "| plant | noise | method | " + " | ".join(f"ug {g}" for g in UG_GRID) +
+                  " | mean increase (pp) | compression |", "|---|---|---|" + "---|" * (len(UG_GRID) + 2)]
+        for r in hyb:
+            pairs = [f"{fmt(h)} → {fmt(e)}" for h, e in zip(r["sweep_hybrid"], r["sweep_explicit"])]
+            inc = [e - h for h, e in zip(r["sweep_hybrid"], r["sweep_explicit"]) if h is not None and e is not None]
+            comp = r["hybrid_parameters"] / max(r["n_parameters"], 1)
+            lines.append(f"| {r['plant']} | {r['noise']} | {r['method']} | " + " | ".join(pairs) +
+                         f" | {fmt(float(np.mean(inc)) if inc else None)} | {comp:.0f}× |")
+    for key, title in (("n_traj", "Error vs number of training trajectories"), ("snr", "Error vs SNR (dB)")):
+        rows = [r for r in results["runs"] if r.get("sweep") == key]
+        if rows:
+            lines += ["", f"## {title} (standard plant, pisml)", "", f"| {key} | IOD % | OOD % | W(ug 0.8) | time s |",
+                      "|---|---|---|---|---|"]
+            for r in rows:
+                lines.append(f"| {r[key]} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
+                             f"{fmt(r.get('wasserstein_ug08'))} | {fmt(r.get('seconds'))} |")
+    lines += ["", "Figures: bench/figures/spectra_*.png (eigenvalues at ug 0.8, model vs truth).", ""]
+    path.write_text("\n".join(lines))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="standard plant, 40 dB and clean, no sweeps")
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--out", default=str(BENCH / "results.json"))
+    parser.add_argument("--markdown", default=str(BENCH / "RESULTS.md"))
+    args = parser.parse_args(argv)
+    from pisml_ros.report.figures import plot_spectra
+
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    config = IdentConfig()
+    started = time.monotonic()
+    runs = []
+    fig_dir = BENCH / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    plants = {"standard": PLANTS["standard"]} if args.quick else PLANTS
+    for plant_name, effects in plants.items():
+        for snr in (None, 40.0):
+            noise = "clean" if snr is None else f"{snr:g} dB"
+            plant, train, small, test = datasets(effects, snr)
+            sweep = ug_sweep_set(plant)
+            truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
+            figure_spectra = {"truth": truth[0.8]}
+            for method in methods:
+                row, est = run_fit(method, plant, train, small, test, sweep, truth, config, f"{plant_name}/{noise}")
+                row.update(plant=plant_name, noise=noise, sweep="main")
+                runs.append(row)
+                if row.get("_spectrum_ug08"):
+                    figure_spectra[method] = np.array([complex(a, b) for a, b in row["_spectrum_ug08"]])
+                print(f"{plant_name:10s} {noise:6s} {method:12s} IOD {fmt(row.get('iod')):>8} % OOD "
+                      f"{fmt(row.get('ood')):>8} % W0.8 {fmt(row.get('wasserstein_ug08')):>8} "
+                      f"params {row.get('n_parameters', '—'):>6} {row['seconds']:6.1f} s"
+                      f"{'  ERROR ' + row['error'] if 'error' in row else ''}", flush=True)
+            plot_spectra(figure_spectra, fig_dir / f"spectra_{plant_name}_{noise.replace(' ', '')}.png",
+                         title=f"eigenvalues at ug 0.8 ({plant_name}, {noise})")
+    if not args.quick and "pisml" in methods:
+        for n_traj in (3, 6):
+            plant, train, small, test = datasets({}, 40.0, n_traj=n_traj)
+            truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
+            row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant), truth, config, f"n_traj {n_traj}")
+            row.update(sweep="n_traj", n_traj=n_traj)
+            runs.append(row)
+            print(f"n_traj {n_traj}: IOD {fmt(row.get('iod'))} OOD {fmt(row.get('ood'))} {row['seconds']:.1f} s", flush=True)
+        for snr in (20.0, 30.0, 60.0):
+            plant, train, small, test = datasets({}, snr)
+            truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
+            row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant), truth, config, f"snr {snr}")
+            row.update(sweep="snr", snr=snr)
+            runs.append(row)
+            print(f"snr {snr:g}: IOD {fmt(row.get('iod'))} OOD {fmt(row.get('ood'))} {row['seconds']:.1f} s", flush=True)
+    results = {
+        "command": "python bench/bench.py" + (" --quick" if args.quick else ""),
+        "mode": "quick" if args.quick else "full",
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+        "date": time.strftime("%Y-%m-%d"),
+        "total_seconds": time.monotonic() - started,
+        "config": config.to_dict(),
+        "runs": [{k: v for k, v in r.items() if not k.startswith("_")} for r in runs],
+    }
+    Path(args.out).write_text(json.dumps(results, indent=2, default=float))
+    write_markdown(results, Path(args.markdown))
+    print(f"wrote {args.out}, {args.markdown} ({results['total_seconds']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,21 @@
+"""Identification engine: libraries, sparse backbone, neural residual, distillation, baselines.
+
+Entry point: :func:`make_estimator` (``method`` = pisml | pisml-nojac | std-sindy |
+mod-sindy | node), then ``fit(train, smallsignal)``; every estimator leaves
+``model_`` (simulate, jacobian, eigenvalues, n_parameters) and, where the method
+has one, ``explicit_model_`` (an :class:`~pisml_ros.model.ExplicitModel`).
+"""
+from .config import ConfigError, IdentConfig
+from .roles import RoleError, SignalRoles
+
+__all__ = ["ConfigError", "IdentConfig", "RoleError", "SignalRoles", "METHODS", "make_estimator",
+           "StageUpdate", "IdentificationCancelled"]
+
+
+def __getattr__(name):
+    # estimators import torch lazily: keep `import pisml_ros.ident` light
+    if name in ("METHODS", "make_estimator", "StageUpdate", "IdentificationCancelled"):
+        from . import estimators
+
+        return getattr(estimators, name)
+    raise AttributeError(name)

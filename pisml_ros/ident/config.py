@@ -1,0 +1,128 @@
+"""Settings of the identification engine (one dataclass, loadable from YAML/JSON)."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, Mapping
+
+from .roles import SignalRoles
+
+
+class ConfigError(ValueError):
+    """An unknown or out-of-range identification setting; the message names it."""
+
+
+@dataclasses.dataclass
+class IdentConfig:
+    """All knobs of PISML and the baselines, with the paper's defaults.
+
+    Attributes are grouped by stage: ``backbone_*`` (sparse physics backbone),
+    ``hidden``/``dropout``/``epochs``/... (neural residual trained through the ODE
+    solver), ``lambda_*`` (loss weights), ``distill_*`` (symbolic distillation) and
+    ``refine_*`` (fine-tuning of the merged explicit model on trajectories).
+    """
+
+    roles: SignalRoles = dataclasses.field(default_factory=SignalRoles)
+    # sparse backbone over Θ, integral (weak) form
+    backbone_span: int = 10
+    backbone_threshold: float = 0.02
+    backbone_alpha: float = 1e-6
+    # neural residual N(x, u) and hybrid training
+    hidden: tuple = (128, 128)
+    dropout: float = 0.0
+    epochs: int = 60
+    learning_rate: float = 1e-3
+    window: int = 10
+    batch_windows: int = 128
+    solver: str = "rk4"
+    substeps: int = 1
+    adjoint: bool = False
+    lambda_pert: float = 1.0
+    lambda_sparse: float = 1e-6
+    seed: int = 0
+    # symbolic distillation over Θ_ext
+    distill_degree: int = 2
+    distill_threshold: float = 0.1
+    distill_samples: int = 20000
+    distill_max_terms: int = 6
+    distill_spread: float = 0.05
+    # fine-tuning of the merged explicit model
+    refine: bool = True
+    refine_window: int = 20
+    refine_max_windows: int = 60
+    refine_max_nfev: int = 6
+    refine_prune_t: float = 2.0
+    refine_rounds: int = 1
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any] | None) -> "IdentConfig":
+        """Build from a mapping (unknown keys raise :class:`ConfigError` naming them)."""
+        values = dict(values or {})
+        known = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise ConfigError(f"identification config: unknown key(s) {unknown}; known: {sorted(known)}")
+        kwargs = {}
+        defaults = cls()
+        for key, value in values.items():
+            if key == "roles":
+                kwargs[key] = value if isinstance(value, SignalRoles) else SignalRoles.from_mapping(value or {})
+                continue
+            default = getattr(defaults, key)
+            try:
+                if isinstance(default, bool):
+                    if isinstance(value, str):
+                        if value.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                            raise ValueError(value)
+                        value = value.lower() in ("true", "1", "yes")
+                    kwargs[key] = bool(value)
+                elif isinstance(default, tuple):
+                    kwargs[key] = tuple(int(v) for v in (value.split(",") if isinstance(value, str) else value))
+                else:
+                    kwargs[key] = type(default)(value)
+            except (TypeError, ValueError):
+                raise ConfigError(f"identification config: {key} = {value!r} is not a valid "
+                                  f"{type(default).__name__}") from None
+        config = cls(**kwargs)
+        config.check()
+        return config
+
+    @classmethod
+    def load(cls, path: str | Path | None, overrides: Mapping[str, Any] | None = None) -> "IdentConfig":
+        """From a YAML/JSON file (its ``identification:`` section if present), then ``overrides``."""
+        values: dict = {}
+        if path:
+            import yaml
+
+            path = Path(path)
+            try:
+                data = yaml.safe_load(path.read_text()) or {}
+            except (OSError, yaml.YAMLError) as err:
+                raise ConfigError(f"{path}: cannot read identification config: {err}") from None
+            if not isinstance(data, dict):
+                raise ConfigError(f"{path}: expected a mapping of settings")
+            values = dict(data.get("identification", data))
+        values.update(overrides or {})
+        return cls.from_mapping(values)
+
+    def check(self) -> None:
+        positive = ["backbone_span", "epochs", "window", "batch_windows", "substeps", "distill_samples", "distill_max_terms",
+                    "refine_window", "refine_max_windows", "learning_rate"]
+        for key in positive:
+            if getattr(self, key) <= 0:
+                raise ConfigError(f"identification config: {key} must be > 0, got {getattr(self, key)}")
+        for key in ["backbone_threshold", "backbone_alpha", "dropout", "lambda_pert", "lambda_sparse",
+                    "distill_threshold", "distill_spread", "refine_max_nfev", "refine_prune_t", "refine_rounds"]:
+            if getattr(self, key) < 0:
+                raise ConfigError(f"identification config: {key} must be >= 0, got {getattr(self, key)}")
+        if not 0 <= self.dropout < 1:
+            raise ConfigError(f"identification config: dropout must be in [0, 1), got {self.dropout}")
+        if self.solver not in ("rk4", "euler", "midpoint", "dopri5"):
+            raise ConfigError(f"identification config: solver must be rk4, euler, midpoint or dopri5, "
+                              f"got {self.solver!r}")
+
+    def to_dict(self) -> dict:
+        out = dataclasses.asdict(self)
+        out["roles"] = self.roles.to_dict()
+        out["hidden"] = list(self.hidden)
+        return out

@@ -1,0 +1,313 @@
+"""Estimators with one API: PISML (with and without the Jacobian loss) and the paper's baselines.
+
+``make_estimator(method, config).fit(train, smallsignal, callback, should_stop)`` returns the
+estimator; learned attributes end in ``_``:
+
+- ``model_``: the final model (simulate, jacobian, eigenvalues, equilibrium, n_parameters);
+- ``explicit_model_``: an :class:`~pisml_ros.model.ExplicitModel` where the method has one;
+- ``metrics_``: timings, losses, parameter counts; ``history_``: training curves.
+
+``callback(StageUpdate)`` reports progress and each stage's model as soon as it exists
+(backbone → hybrid → explicit), from the thread that runs ``fit``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable
+
+import numpy as np
+
+from ..data import Dataset
+from ..model import ExplicitModel
+from ..model.expressions import term_set
+from .backbone import fit_backbone, reference_points, sparse_regression
+from .config import IdentConfig
+from .library import extended_library, physics_library
+
+METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
+
+
+class IdentificationCancelled(Exception):
+    """fit() stopped because should_stop() returned True."""
+
+
+@dataclasses.dataclass
+class StageUpdate:
+    """Progress of a fit: ``stage`` (backbone | training | hybrid | distillation | refinement | explicit),
+    overall ``progress`` in [0, 1], ``epoch``, current ``losses`` and, when a stage's model is ready, ``model``."""
+
+    stage: str
+    progress: float
+    epoch: int = 0
+    losses: dict = dataclasses.field(default_factory=dict)
+    model: object | None = None
+
+
+class _Estimator:
+    method = ""
+
+    def __init__(self, config: IdentConfig | None = None):
+        self.config = config or IdentConfig()
+
+    def _start(self, train: Dataset, callback, should_stop):
+        if len(train) == 0:
+            raise ValueError("no training trajectories")
+        self.config.roles.check(train.state_names, train.input_names)
+        self._callback = callback or (lambda update: None)
+        self._should_stop = should_stop or (lambda: False)
+        self._t0 = time.monotonic()
+        self.metrics_ = {}
+        self.history_ = {}
+
+    def _emit(self, stage, progress, epoch=0, losses=None, model=None):
+        if self._should_stop():
+            raise IdentificationCancelled(f"{self.method}: cancelled during {stage}")
+        self._callback(StageUpdate(stage, float(progress), int(epoch), dict(losses or {}), model))
+
+    def _finish(self, model, explicit):
+        self.model_ = model
+        self.explicit_model_ = explicit
+        self.metrics_["seconds"] = time.monotonic() - self._t0
+        self.metrics_["n_parameters"] = float(model.n_parameters)
+        if explicit is not None:
+            explicit.metadata.setdefault("identification", {}).update(
+                {"method": self.method, "seconds": round(self.metrics_["seconds"], 3)})
+        return self
+
+
+def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset | None) -> dict:
+    return {"method": method, "config": config.to_dict(), "reference_points": reference_points(train),
+            "training": {"trajectories": len(train), "samples": train.n_samples,
+                         "smallsignal_trajectories": len(smallsignal) if smallsignal is not None else 0}}
+
+
+class ModSINDy(_Estimator):
+    """Mod-SINDy: the physics library Θ, finite-difference derivatives, ridge regression (1e-6)."""
+
+    method = "mod-sindy"
+
+    def fit(self, train: Dataset, smallsignal: Dataset | None = None, callback=None, should_stop=None):
+        import pysindy as ps
+
+        from .derivatives import finite_difference_derivatives
+
+        self._start(train, callback, should_stop)
+        terms = physics_library(self.config.roles, train.state_names)
+        ts = term_set(terms, tuple(train.state_names) + tuple(train.input_names))
+        theta = np.concatenate([ts.evaluate(np.concatenate([tr.x, tr.u], 1)) for tr in train])
+        xdot = np.concatenate(finite_difference_derivatives(train))
+        opt = ps.STLSQ(threshold=0.0, alpha=1e-6).fit(theta, xdot)
+        model = ExplicitModel(train.state_names, train.input_names, terms, np.atleast_2d(opt.coef_).T,
+                              _meta(self.method, self.config, train, smallsignal))
+        self._emit("explicit", 1.0, model=model)
+        return self._finish(model, model)
+
+
+class StdSINDy(_Estimator):
+    """Std SINDy: polynomial library of degree 2 over MinMax-scaled signals, STLSQ threshold 0.005.
+
+    The terms of the explicit model are written over the scaled signals (``(x - lo)/(hi - lo)``),
+    so the JSON still rebuilds f(x, u) exactly.
+    """
+
+    method = "std-sindy"
+
+    def fit(self, train: Dataset, smallsignal: Dataset | None = None, callback=None, should_stop=None):
+        import itertools
+
+        import pysindy as ps
+
+        from .derivatives import finite_difference_derivatives
+
+        self._start(train, callback, should_stop)
+        names = list(train.state_names) + list(train.input_names)
+        z = np.concatenate([np.concatenate([tr.x, tr.u], 1) for tr in train])
+        lo, hi = z.min(axis=0), z.max(axis=0)
+        span = np.where(hi - lo > 1e-12, hi - lo, 1.0)
+        scaled = [f"(({n} - {float(lo[k])!r})/{float(span[k])!r})" for k, n in enumerate(names)]
+        terms = ["1", *scaled, *[f"{a}*{b}" for a, b in itertools.combinations_with_replacement(scaled, 2)]]
+        theta = term_set(terms, names).evaluate(z)
+        n_x = len(train.state_names)
+        # derivatives of the scaled states; coefficients go back to 1/s of the raw states below
+        xdot = np.concatenate(finite_difference_derivatives(train)) / span[:n_x]
+        opt = ps.STLSQ(threshold=0.005, alpha=0.05).fit(theta, xdot)
+        coef = np.atleast_2d(opt.coef_).T * span[None, :n_x]
+        model = ExplicitModel(train.state_names, train.input_names, terms, coef,
+                              _meta(self.method, self.config, train, smallsignal))
+        self._emit("explicit", 1.0, model=model)
+        return self._finish(model, model)
+
+
+class PureNODE(_Estimator):
+    """Pure NODE: the MLP alone as the vector field, trained through the ODE solver (no physics, no
+    Jacobian loss); no explicit model."""
+
+    method = "node"
+
+    def fit(self, train: Dataset, smallsignal: Dataset | None = None, callback=None, should_stop=None):
+        from .neural import NeuralModel
+
+        self._start(train, callback, should_stop)
+        field = _train_field(self, train, None, backbone=None, lambda_pert=0.0)
+        model = NeuralModel(field, train.state_names, train.input_names, reference_points(train), kind="neural ODE")
+        self._emit("hybrid", 1.0, model=model)
+        return self._finish(model, None)
+
+
+class PISML(_Estimator):
+    """PISML: sparse physics backbone + neural residual trained through the ODE solver (+ Jacobian
+    consistency on small-signal data), distilled over Θ_ext, merged, and refined on trajectories.
+
+    Parameters
+    ----------
+    config : IdentConfig
+    use_jacobian : bool
+        False gives the "PISML without the Jacobian loss" ablation (small-signal data unused).
+    """
+
+    def __init__(self, config: IdentConfig | None = None, use_jacobian: bool = True):
+        super().__init__(config)
+        self.use_jacobian = use_jacobian
+        self.method = "pisml" if use_jacobian else "pisml-nojac"
+
+    def fit(self, train: Dataset, smallsignal: Dataset | None = None, callback=None, should_stop=None):
+        from .distill import distill_residual, merge, sample_envelope
+        from .neural import NeuralModel
+
+        self._start(train, callback, should_stop)
+        cfg = self.config
+        smallsignal = smallsignal if self.use_jacobian else None
+        signals = list(train.state_names) + list(train.input_names)
+        # 1. backbone
+        started = time.monotonic()
+        theta_terms = physics_library(cfg.roles, train.state_names)
+        backbone = fit_backbone(train, theta_terms, span=cfg.backbone_span, threshold=cfg.backbone_threshold,
+                                alpha=cfg.backbone_alpha)
+        backbone.metadata.update(_meta(self.method, cfg, train, smallsignal))
+        backbone.metadata["stage"] = "backbone"
+        self.backbone_ = backbone
+        self.metrics_["backbone_seconds"] = time.monotonic() - started
+        self._emit("backbone", 0.05, model=backbone)
+        # 2. hybrid: Ξ and N(x, u) trained together through the ODE solver
+        started = time.monotonic()
+        field = _train_field(self, train, smallsignal, backbone=backbone,
+                             lambda_pert=cfg.lambda_pert if self.use_jacobian else 0.0)
+        trained_backbone = ExplicitModel(train.state_names, train.input_names, theta_terms,
+                                         field.xi.detach().numpy().copy(), backbone.metadata)
+        hybrid = NeuralModel(field, train.state_names, train.input_names, reference_points(train),
+                             backbone=trained_backbone, kind="hybrid")
+        self.hybrid_ = hybrid
+        self.metrics_["hybrid_seconds"] = time.monotonic() - started
+        self._emit("hybrid", 0.6, model=hybrid)
+        # 3. distillation of N over Θ_ext, merged with the trained backbone
+        started = time.monotonic()
+        ext = extended_library(cfg.roles, train.state_names, degree=cfg.distill_degree)
+        xs, us = sample_envelope(train, cfg.distill_samples, cfg.distill_spread, seed=cfg.seed)
+        basis, coef = distill_residual(hybrid.residual, xs, us, ext, signals, cfg.distill_threshold,
+                                       max_terms=cfg.distill_max_terms)
+        explicit = merge(trained_backbone, basis, coef, {"stage": "distilled"})
+        self.distilled_ = explicit
+        self.metrics_["distill_seconds"] = time.monotonic() - started
+        self._emit("distillation", 0.7, losses={"terms": len(explicit.terms), "nonzero": explicit.n_parameters})
+        # 4. fine-tuning of the merged coefficients on trajectories (+ small-signal responses)
+        if cfg.refine:
+            started = time.monotonic()
+            explicit = refine_explicit(explicit, train, smallsignal, cfg,
+                                       lambda progress, losses: self._emit("refinement", 0.7 + 0.3 * progress,
+                                                                           losses=losses))
+            self.metrics_["refine_seconds"] = time.monotonic() - started
+        explicit.metadata["stage"] = "explicit"
+        self.metrics_["explicit_nonzero"] = float(explicit.n_parameters)
+        self.metrics_["hybrid_parameters"] = float(hybrid.n_parameters)
+        self._emit("explicit", 1.0, model=explicit)
+        return self._finish(explicit, explicit)
+
+
+def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: ExplicitModel | None, lambda_pert: float):
+    """Build and train a HybridField (backbone optional) with the estimator's config."""
+    from .neural import StopRequested, build_modules, train_hybrid
+
+    cfg = est.config
+    residual_cls, hybrid_cls = build_modules()
+    z = np.concatenate([np.concatenate([tr.x, tr.u], 1) for tr in train])
+    n_x = len(train.state_names)
+    # output scale: the typical size of each state's derivative (from finite differences of the data)
+    dz = np.concatenate([np.diff(tr.x, axis=0) / train.dt for tr in train])
+    out_scale = np.std(dz, axis=0) + 1e-9
+    if backbone is not None:
+        out_scale = 0.1 * out_scale  # the backbone carries most of the field; N learns what it misses
+    mlp = residual_cls(z.shape[1], n_x, tuple(cfg.hidden), cfg.dropout, z.mean(axis=0), z.std(axis=0) + 1e-9,
+                       out_scale)
+    signals = list(train.state_names) + list(train.input_names)
+    if backbone is not None:
+        field = hybrid_cls(backbone.terms, signals, n_x, xi0=backbone.coefficients, mlp=mlp)
+    else:
+        field = hybrid_cls(None, signals, n_x, mlp=mlp)
+    state_scale = z[:, :n_x].std(axis=0) + 1e-9
+
+    def progress(epoch, losses):
+        if epoch % 5 == 0 or epoch == cfg.epochs - 1:
+            est._emit("training", 0.05 + 0.55 * (epoch + 1) / cfg.epochs, epoch=epoch, losses=losses)
+
+    try:
+        history = train_hybrid(field, train, smallsignal, epochs=cfg.epochs, window=cfg.window,
+                               batch_windows=cfg.batch_windows, learning_rate=cfg.learning_rate,
+                               lambda_pert=lambda_pert, lambda_sparse=cfg.lambda_sparse if backbone else 0.0,
+                               solver=cfg.solver, substeps=cfg.substeps, adjoint=cfg.adjoint, seed=cfg.seed,
+                               state_scale=state_scale, callback=progress, should_stop=est._should_stop)
+    except StopRequested:
+        raise IdentificationCancelled(f"{est.method}: cancelled during training") from None
+    est.history_["training"] = history.to_dict()
+    est.metrics_["final_trajectory_loss"] = history.trajectory_loss[-1] if history.trajectory_loss else float("nan")
+    return field
+
+
+def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig,
+                    progress: Callable[[float, dict], None] | None = None) -> ExplicitModel:
+    """Multiple-shooting least-squares refinement of the nonzero coefficients of ``model``, then
+    pruning of the coefficients the data do not support (|t| < refine_prune_t) and a refit."""
+    from .noise import estimate_noise_std
+    from .trajfit import TrajectoryFitter
+
+    signals = tuple(model.state_names) + tuple(model.input_names)
+    noise = estimate_noise_std(train)
+    spread = np.concatenate([tr.x for tr in train]).std(axis=0)
+    weights = 1.0 / np.maximum(noise, 1e-4 * spread + 1e-12)
+    fitter = TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=cfg.refine_window,
+                              substeps=2, weights=weights,
+                              max_windows=cfg.refine_max_windows)
+    coef = model.coefficients.copy()
+    mask = coef != 0
+    rounds = 1 + cfg.refine_rounds
+    for r in range(rounds):
+        result = fitter.fit(coef, mask, train, smallsignal, lambda_jac=1.0 if smallsignal is not None else 0.0,
+                            max_nfev=cfg.refine_max_nfev)
+        coef = result.coefficients
+        if progress:
+            progress((r + 1) / rounds, {"refine_cost": result.cost, "nonzero": int(mask.sum())})
+        if r == rounds - 1 or cfg.refine_prune_t <= 0:
+            break
+        weak = mask & ~(result.t_values >= cfg.refine_prune_t)
+        if not weak.any():
+            break
+        mask = mask & ~weak
+        coef = np.where(mask, coef, 0.0)
+    meta = dict(model.metadata)
+    meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds}
+    return ExplicitModel(model.state_names, model.input_names, model.terms, coef, meta)
+
+
+def make_estimator(method: str = "pisml", config: IdentConfig | None = None):
+    """An estimator for ``method`` (one of :data:`METHODS`)."""
+    if method == "pisml":
+        return PISML(config, use_jacobian=True)
+    if method == "pisml-nojac":
+        return PISML(config, use_jacobian=False)
+    if method == "std-sindy":
+        return StdSINDy(config)
+    if method == "mod-sindy":
+        return ModSINDy(config)
+    if method == "node":
+        return PureNODE(config)
+    raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")

@@ -1,0 +1,310 @@
+"""Neural residual vector field and the hybrid PISML field f = Θ(x, u)Ξ + N(x, u), trained
+end-to-end through an ODE solver (torchdiffeq) on trajectory windows.
+
+- :class:`ResidualMLP`: the paper's N(x, u), 15→128→128→13, tanh, LayerNorm, optional dropout;
+  inputs standardised, outputs scaled per state (so one learning rate suits states whose
+  derivatives differ by 10⁴).
+- :class:`HybridField`: backbone (trainable Ξ over a term library) plus the residual; either
+  part may be absent (Pure NODE has no backbone).
+- :func:`train_hybrid`: multiple shooting over windows that start at measured states; inputs are
+  a zero-order hold of their samples inside the ODE function (input steps sit on samples, the
+  solver's fixed steps never straddle one). Loss = trajectory loss + λ_pert · Jacobian
+  consistency on small-signal records + λ_sparse · ‖Ξ‖₁.
+- :class:`NeuralModel`: numpy-facing wrapper (vector field, Jacobian by autodiff, equilibria,
+  eigenvalues, simulation, parameter count) for analysis and scoring.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable
+
+import numpy as np
+
+from ..data import Dataset, Trajectory
+from ..data.dataset import steady_start_length
+from ..equilibrium import find_equilibrium
+from ..integrate import simulate_many
+from ..model.expressions import term_set
+
+
+def _torch():
+    import torch
+
+    torch.set_default_dtype(torch.float64)
+    return torch
+
+
+class StopRequested(Exception):
+    """Raised inside training when the caller's should_stop() says so."""
+
+
+def build_modules():
+    """torch module classes (defined lazily so that importing this file does not import torch)."""
+    torch = _torch()
+    nn = torch.nn
+
+    class ResidualMLP(nn.Module):
+        def __init__(self, n_in, n_out, hidden=(128, 128), dropout=0.0, z_mean=None, z_std=None, out_scale=None):
+            super().__init__()
+            layers, width = [], n_in
+            for h in hidden:
+                layers += [nn.Linear(width, h), nn.LayerNorm(h), nn.Tanh()]
+                if dropout > 0:
+                    layers.append(nn.Dropout(dropout))
+                width = h
+            last = nn.Linear(width, n_out)
+            nn.init.zeros_(last.weight)  # starts as "no residual": the backbone alone
+            nn.init.zeros_(last.bias)
+            layers.append(last)
+            self.net = nn.Sequential(*layers)
+            self.register_buffer("z_mean", torch.as_tensor(z_mean if z_mean is not None else np.zeros(n_in)))
+            self.register_buffer("z_std", torch.as_tensor(z_std if z_std is not None else np.ones(n_in)))
+            self.register_buffer("out_scale", torch.as_tensor(out_scale if out_scale is not None else np.ones(n_out)))
+
+        def forward(self, z):
+            return self.net((z - self.z_mean) / self.z_std) * self.out_scale
+
+    class HybridField(nn.Module):
+        def __init__(self, terms, signals, n_states, xi0=None, mlp=None, train_xi=True):
+            super().__init__()
+            self.n_states = n_states
+            self.terms = term_set(list(terms), list(signals)) if terms else None
+            self.mlp = mlp
+            if self.terms is not None:
+                xi = torch.as_tensor(np.zeros((len(terms), n_states)) if xi0 is None else xi0)
+                self.xi = nn.Parameter(xi.clone(), requires_grad=train_xi)
+            else:
+                self.xi = None
+            self.u_seq = None  # (batch, n_samples, n_inputs) of the windows being integrated
+            self.dt = 1.0
+
+        def field(self, x, u):
+            z = torch.cat([x, u], dim=-1)
+            out = 0.0
+            if self.terms is not None:
+                out = self.terms.evaluate_torch(z) @ self.xi
+            if self.mlp is not None:
+                out = out + self.mlp(z)
+            return out
+
+        def forward(self, t, x):
+            k = int(min(max(float(t) / self.dt + 1e-6, 0.0), self.u_seq.shape[1] - 2))
+            return self.field(x, self.u_seq[:, k])
+
+    return ResidualMLP, HybridField
+
+
+@dataclasses.dataclass
+class TrainingHistory:
+    epochs: list = dataclasses.field(default_factory=list)
+    trajectory_loss: list = dataclasses.field(default_factory=list)
+    jacobian_loss: list = dataclasses.field(default_factory=list)
+    sparse_loss: list = dataclasses.field(default_factory=list)
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _windows(dataset: Dataset, window: int):
+    xs, us = [], []
+    for tr in dataset:
+        for start in range(0, len(tr) - window, max(window // 2, 1)):
+            xs.append(tr.x[start:start + window + 1])
+            us.append(tr.u[start:start + window + 1])
+    if not xs:
+        raise ValueError(f"no trajectory is longer than the training window ({window} samples)")
+    return np.array(xs), np.array(us)
+
+
+def smallsignal_pairs(smallsignal: Dataset | None, span: int = 10):
+    """Per small-signal record: its pre-step steady state and integral-form deviation pairs.
+
+    Returns a list of ``(x_eq, u_eq, dx_increment, int_dx, int_du, duration)`` (numpy); records
+    without a steady start are skipped.
+    """
+    pairs = []
+    if smallsignal is None:
+        return pairs
+    for tr in smallsignal:
+        k0 = steady_start_length(tr)
+        if k0 < 5 or k0 >= len(tr) - span:
+            continue
+        x_eq = tr.x[:k0].mean(axis=0)
+        u_eq = tr.u[0].copy()
+        dx, du = tr.x - x_eq, tr.u - u_eq
+        steps = np.diff(tr.t)[:, None]
+        # inputs are a zero-order hold: the left sample holds over each step
+        cum_x = np.concatenate([np.zeros((1, dx.shape[1])), np.cumsum(0.5 * (dx[1:] + dx[:-1]) * steps, 0)])
+        cum_u = np.concatenate([np.zeros((1, du.shape[1])), np.cumsum(du[:-1] * steps, 0)])
+        starts = np.arange(max(k0 - span, 0), len(tr) - span)
+        pairs.append((x_eq, u_eq, dx[starts + span] - dx[starts], cum_x[starts + span] - cum_x[starts],
+                      cum_u[starts + span] - cum_u[starts], float(tr.t[starts[0] + span] - tr.t[starts[0]])))
+    return pairs
+
+
+def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: int, window: int,
+                 batch_windows: int, learning_rate: float, lambda_pert: float, lambda_sparse: float,
+                 solver: str = "rk4", substeps: int = 2, adjoint: bool = False, seed: int = 0,
+                 state_scale=None, callback: Callable | None = None,
+                 should_stop: Callable[[], bool] | None = None) -> TrainingHistory:
+    """Train ``field`` (a HybridField) through torchdiffeq on windows of ``train``.
+
+    Parameters
+    ----------
+    state_scale : ndarray, shape (n_states,)
+        Per-state scale of the trajectory residuals (noise level or signal spread).
+    callback : callable(epoch, losses: dict)
+        Called after every epoch.
+    should_stop : callable() -> bool
+        Polled every epoch; raises :class:`StopRequested` when it returns True.
+    """
+    torch = _torch()
+    import torchdiffeq
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    xw, uw = _windows(train, window)
+    X, U = torch.as_tensor(xw), torch.as_tensor(uw)
+    dt = float(train.dt)
+    field.dt = dt
+    t_grid = torch.arange(window + 1, dtype=torch.float64) * dt
+    scale = torch.as_tensor(state_scale if state_scale is not None else xw.reshape(-1, xw.shape[-1]).std(axis=0) + 1e-9)
+    ss = [tuple(torch.as_tensor(a) if isinstance(a, np.ndarray) else a for a in p) for p in smallsignal_pairs(smallsignal)]
+    params = [p for p in field.parameters() if p.requires_grad]
+    history = TrainingHistory()
+    if not params:
+        return history
+    opt = torch.optim.Adam(params, lr=learning_rate)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=learning_rate * 0.05)
+    integrate = torchdiffeq.odeint_adjoint if adjoint else torchdiffeq.odeint
+    options = {"step_size": dt / substeps} if solver in ("rk4", "euler", "midpoint") else None
+    xi_scale = None
+    if field.xi is not None:
+        # ‖Ξ‖₁ on a common scale: each coefficient times its term's typical size over the state's scale
+        theta = field.terms.evaluate(np.concatenate([xw.reshape(-1, xw.shape[-1]), uw.reshape(-1, uw.shape[-1])], 1))
+        xi_scale = torch.as_tensor(np.abs(theta).mean(axis=0)[:, None] * dt / scale.numpy()[None, :])
+    started = time.monotonic()
+    field.train()
+    for epoch in range(epochs):
+        if should_stop is not None and should_stop():
+            raise StopRequested()
+        batch = rng.choice(X.shape[0], size=min(batch_windows, X.shape[0]), replace=False)
+        xb, ub = X[batch], U[batch]
+        field.u_seq = ub
+        kwargs = {"method": solver, "options": options} if options else {"method": solver, "rtol": 1e-6, "atol": 1e-8}
+        if adjoint:
+            kwargs["adjoint_params"] = tuple(params)
+        pred = integrate(field, xb[:, 0], t_grid, **kwargs)  # (window+1, batch, n)
+        traj = torch.mean(((pred.transpose(0, 1) - xb) / scale) ** 2)
+        loss = traj
+        jac_loss = torch.zeros(())
+        if lambda_pert > 0 and ss:
+            for x_eq, u_eq, inc, int_dx, int_du, span_t in ss:
+                fx = torch.func.jacrev(lambda x: field.field(x[None], u_eq[None])[0])(x_eq)
+                fu = torch.func.jacrev(lambda u: field.field(x_eq[None], u[None])[0])(u_eq)
+                f0 = field.field(x_eq[None], u_eq[None])[0]
+                pred_inc = span_t * f0 + int_dx @ fx.T + int_du @ fu.T
+                jac_loss = jac_loss + torch.mean(((pred_inc - inc) / scale) ** 2) / len(ss)
+            loss = loss + lambda_pert * jac_loss
+        sparse = torch.zeros(())
+        if lambda_sparse > 0 and xi_scale is not None:
+            sparse = torch.sum(torch.abs(field.xi) * xi_scale)
+            loss = loss + lambda_sparse * sparse
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 10.0)
+        opt.step()
+        sched.step()
+        history.epochs.append(epoch)
+        history.trajectory_loss.append(float(traj.detach()))
+        history.jacobian_loss.append(float(jac_loss.detach()))
+        history.sparse_loss.append(float(sparse.detach()))
+        if callback is not None:
+            callback(epoch, {"trajectory": history.trajectory_loss[-1], "jacobian": history.jacobian_loss[-1], "sparse": history.sparse_loss[-1]})
+    field.eval()
+    history.seconds = time.monotonic() - started
+    return history
+
+
+class NeuralModel:
+    """A trained (hybrid or pure) neural vector field behind the numpy model interface.
+
+    Parameters
+    ----------
+    field : HybridField
+    state_names, input_names : sequence of str
+    reference_points : list of dict
+        ``{"inputs": [...], "state": [...]}`` where equilibrium searches start.
+    backbone : ExplicitModel or None
+        The explicit part (for display; the field holds the trained Ξ).
+    """
+
+    def __init__(self, field, state_names, input_names, reference_points=(), backbone=None, kind="hybrid"):
+        self.field = field
+        self.state_names = tuple(state_names)
+        self.input_names = tuple(input_names)
+        self.reference_points = list(reference_points)
+        self.backbone = backbone
+        self.kind = kind
+        self.metadata = {"method": kind, "reference_points": self.reference_points}
+
+    @property
+    def n_states(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def n_parameters(self) -> int:
+        """Trainable parameters: network weights plus nonzero backbone coefficients."""
+        n = 0
+        if self.field.mlp is not None:
+            n += sum(p.numel() for p in self.field.mlp.parameters())
+        if self.field.xi is not None:
+            n += int(np.count_nonzero(self.field.xi.detach().numpy()))
+        return n
+
+    def vector_field(self, x, u) -> np.ndarray:
+        torch = _torch()
+        x = np.asarray(x, dtype=float)
+        u = np.asarray(u, dtype=float)
+        lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        xt = torch.as_tensor(np.broadcast_to(x, lead + x.shape[-1:]).reshape(-1, x.shape[-1]).copy())
+        ut = torch.as_tensor(np.broadcast_to(u, lead + u.shape[-1:]).reshape(-1, u.shape[-1]).copy())
+        with torch.no_grad():
+            out = self.field.field(xt, ut).numpy()
+        return out.reshape(lead + (self.n_states,))
+
+    def residual(self, x, u) -> np.ndarray:
+        """N(x, u) alone (zeros for a model without a network)."""
+        torch = _torch()
+        if self.field.mlp is None:
+            return np.zeros(np.shape(x))
+        with torch.no_grad():
+            return self.field.mlp(torch.as_tensor(np.concatenate([x, u], axis=-1))).numpy()
+
+    def jacobian(self, x, u, wrt: str = "x") -> np.ndarray:
+        torch = _torch()
+        xt = torch.as_tensor(np.asarray(x, dtype=float))
+        ut = torch.as_tensor(np.asarray(u, dtype=float))
+        if wrt == "x":
+            jac = torch.func.jacrev(lambda y: self.field.field(y[None], ut[None])[0])(xt)
+        else:
+            jac = torch.func.jacrev(lambda v: self.field.field(xt[None], v[None])[0])(ut)
+        return jac.detach().numpy()
+
+    def equilibrium(self, *inputs: float, x0=None, tol: float = 1e-8) -> np.ndarray:
+        return find_equilibrium(self.vector_field, self.jacobian, inputs, self.reference_points, x0=x0, tol=tol,
+                                what=f"{self.kind} model")
+
+    def eigenvalues(self, *inputs: float) -> np.ndarray:
+        return np.linalg.eigvals(self.jacobian(self.equilibrium(*inputs), np.array(inputs, dtype=float)))
+
+    def simulate(self, dataset: Dataset, substeps: int = 4, method: str = "rk4") -> Dataset:
+        """Replay each trajectory's measured inputs from its measured initial state."""
+        cols = dataset.state_index(self.state_names)
+        icols = [dataset.input_names.index(n) for n in self.input_names]
+        preds = simulate_many(self, [tr.x[0, cols] for tr in dataset], [tr.u[:, icols] for tr in dataset],
+                              dataset.dt, substeps=substeps, method=method)
+        out = [Trajectory(tr.traj_id, tr.t.copy(), p, tr.u[:, icols]) for tr, p in zip(dataset, preds)]
+        return Dataset(self.state_names, self.input_names, out, {"dt": dataset.dt, "source": "simulation"})
