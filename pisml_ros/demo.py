@@ -379,8 +379,9 @@ def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool
             f"min ζ = {r.min_damping_ratio:.3f}, ug margin {r.ug_margin:.3f} p.u., W1 to plant "
             f"{stability['operating_points'][f'{ug:g}']['wasserstein_to_plant']:.1f}{plant_text}")
     if locus:
-        say(f"stability boundary in grid voltage (model): ug = "
-            f"{', '.join(f'{b:.4f}' for b in locus['boundaries']) or 'none in ' + str([locus['ug'][0], locus['ug'][-1]])}")
+        bounds = ", ".join(f"{b:.4f}" for b in locus["boundaries"])
+        low, high = locus["ug"][0], locus["ug"][-1]
+        say(f"stability boundary in grid voltage (model): ug = {bounds or f'none in [{low:g}, {high:g}]'}")
     say(f"stability boundary in grid voltage: ug = {', '.join(f'{b:.4f}' for b in plant_part['ug_boundaries'])} p.u. "
         f"(plant)")
     if errors:

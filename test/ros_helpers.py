@@ -85,3 +85,8 @@ def wait_future(node, future, timeout: float):
     if not spin_until(node, future.done, timeout):
         raise AssertionError(f"no answer within {timeout} s")
     return future.result()
+
+
+def stop_all(*procs) -> list:
+    """Stop every process (None entries skipped) before anything is asserted; their exit statuses."""
+    return [stop_node(p) for p in procs if p is not None]

@@ -16,7 +16,7 @@ from pisml_ros.data import read_csv, read_dataset, write_csv
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
 
-from ros_helpers import (diagnostic_values, spin_until, start_cli, start_node, stop_node, wait_for_log,
+from ros_helpers import (diagnostic_values, spin_until, start_cli, start_node, stop_all, stop_node, wait_for_log,
                          wait_future)
 
 rclpy = pytest.importorskip("rclpy")
@@ -129,9 +129,7 @@ def test_chain_delivers_the_engine_model_and_its_stability(probe, tmp_path, clea
     finally:
         for sub in subs:
             probe.destroy_subscription(sub)
-        assert stop_node(meas) == 0
-        assert stop_node(ident) == 0
-        assert stop_node(analyser) == 0
+        assert stop_all(meas, ident, analyser) == [0, 0, 0]
 
 
 def test_initial_model_is_latched_and_bad_models_do_not_stop_the_analyser(probe, tmp_path, clean_train):
@@ -150,9 +148,10 @@ def test_initial_model_is_latched_and_bad_models_do_not_stop_the_analyser(probe,
         def analyser_status():
             return diagnostic_values(diags, "pisml: analyser")[0]
 
-        assert spin_until(probe, lambda: analyser_status() is not None and analyser_status().level == DiagnosticStatus.ERROR,
-                          20.0), \
-            analyser.log_path.read_text()
+        def failing():
+            return analyser_status() is not None and analyser_status().level == DiagnosticStatus.ERROR
+
+        assert spin_until(probe, failing, 20.0), analyser.log_path.read_text()
         assert "broken" in analyser_status().message and "not valid JSON" in analyser_status().message
         bad_terms = json.loads(saved.read_text())
         bad_terms["terms"][1] = "__import__('os')"
@@ -178,9 +177,7 @@ def test_initial_model_is_latched_and_bad_models_do_not_stop_the_analyser(probe,
             probe.destroy_subscription(sub)
         if pub is not None:
             probe.destroy_publisher(pub)
-        if ident is not None:
-            assert stop_node(ident) == 0
-        assert stop_node(analyser) == 0
+        assert set(stop_all(ident, analyser)) == {0}
 
 
 def test_identify_action_reports_progress_and_can_be_cancelled(probe, tmp_path, clean_train):
@@ -248,7 +245,7 @@ def test_a_bag_recorded_from_the_live_graph_replays_to_the_same_model(probe, tmp
     ident = start_node("pisml-identifier", *FAST, "-p", "output_dir:=''", log_dir=tmp_path)
     recorder = start_cli("record", "record", "--topics", "/pisml/measurement", "/pisml/model", "--out", bag,
                          log_dir=tmp_path)
-    meas = None
+    meas = player = None
     try:
         assert wait_for_log(recorder, "recording /pisml/model", 30.0), recorder.log_path.read_text()
         meas = start_node("pisml-measurement", "-p", "source:=csv", "-p", f"path:={clean_train}", "-p", "rate:=0.0",
@@ -258,7 +255,7 @@ def test_a_bag_recorded_from_the_live_graph_replays_to_the_same_model(probe, tmp
         time.sleep(1.0)  # the recorder gets the model too
         assert stop_node(recorder) == 0, recorder.log_path.read_text()
         assert "wrote" in recorder.log_path.read_text()
-        assert stop_node(ident) == 0 and stop_node(meas) == 0
+        assert stop_all(ident, meas) == [0, 0]
         meas = None
         # the bag holds the samples as they travelled, and the model
         recorded, original = read_dataset(bag), read_csv(clean_train)
@@ -284,10 +281,7 @@ def test_a_bag_recorded_from_the_live_graph_replays_to_the_same_model(probe, tmp
         assert again.terms == first.terms and again.coefficients == first.coefficients
     finally:
         probe.destroy_subscription(sub)
-        if meas is not None:
-            stop_node(meas)
-        stop_node(recorder)
-        assert stop_node(ident) == 0
+        assert set(stop_all(meas, recorder, ident, player)) <= {0}
 
 
 def test_demo_runs_the_live_graph_and_writes_its_report(tmp_path):
@@ -367,3 +361,22 @@ def test_identifier_assembles_out_of_order_batches_and_retrains_on_new_data(prob
             probe.destroy_subscription(sub)
         probe.destroy_publisher(pub)
         assert stop_node(ident) == 0
+
+
+def test_identifier_and_analyser_start_with_the_shipped_config(probe, tmp_path):
+    from pathlib import Path
+
+    config = Path(__file__).resolve().parents[1] / "config" / "pisml.yaml"
+    diags = []
+    sub = probe.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 100)
+    nodes = [start_node(f"pisml-{name}", "--params-file", str(config), "-p", f"output_dir:={tmp_path / name}",
+                        log_dir=tmp_path) for name in ("identifier", "analyser")]
+    try:
+        assert spin_until(probe, lambda: all(diagnostic_values(diags, f"pisml: {n}")[0] is not None
+                                             for n in ("identifier", "analyser")), 40.0), \
+            "".join(p.log_path.read_text() for p in nodes)
+        log = nodes[0].log_path.read_text()
+        assert "method pisml" in log and "small-signal data bags/smallsignal_40dB (4 records)" in log
+    finally:
+        probe.destroy_subscription(sub)
+        assert stop_all(*nodes) == [0, 0]

@@ -8,7 +8,7 @@ from pisml_ros.data import read_csv, write_csv
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
 
-from ros_helpers import spin_until, start_node, stop_node
+from ros_helpers import spin_until, start_node, stop_all, stop_node
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -90,8 +90,7 @@ def test_measurement_to_identifier_carries_every_sample(probe, tmp_path):
     finally:
         for sub in subs:
             probe.destroy_subscription(sub)
-        assert stop_node(meas) == 0
-        assert stop_node(ident) == 0
+        assert stop_all(meas, ident) == [0, 0]
 
 
 def test_identifier_rejects_malformed_batches_and_keeps_running(probe, tmp_path):
@@ -168,5 +167,4 @@ def test_gap_node_publishes_a_gap_report(probe, tmp_path):
         assert msg.gap_after < msg.gap_before / 10 and msg.windows
     finally:
         probe.destroy_subscription(sub)
-        assert stop_node(meas) == 0
-        assert stop_node(gap) == 0
+        assert stop_all(meas, gap) == [0, 0]

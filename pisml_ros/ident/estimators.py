@@ -211,12 +211,23 @@ class PISML(_Estimator):
         self.metrics_["distill_seconds"] = time.monotonic() - started
         self._emit("distillation", 0.7, losses={"terms": len(explicit.terms), "nonzero": explicit.n_parameters})
         # 4. fine-tuning of the merged coefficients on trajectories (+ small-signal responses)
+        candidates = {"backbone": backbone, "trained backbone": trained_backbone, "distilled": explicit}
         if cfg.refine:
             started = time.monotonic()
-            explicit = refine_explicit(explicit, train, smallsignal, cfg,
-                                       lambda progress, losses: self._emit("refinement", 0.7 + 0.3 * progress,
-                                                                           losses=losses))
+            refined = refine_explicit(explicit, train, smallsignal, cfg,
+                                      lambda progress, losses: self._emit("refinement", 0.7 + 0.28 * progress,
+                                                                          losses=losses))
+            candidates.update(refined)
             self.metrics_["refine_seconds"] = time.monotonic() - started
+        # 5. the explicit model is the candidate that best reproduces the training records when run
+        # freely from their first samples: refinement or pruning that made things worse is dropped
+        scores = {name: training_error(model, train) for name, model in candidates.items()}
+        chosen = min(scores, key=lambda name: scores[name])
+        explicit = ExplicitModel(train.state_names, train.input_names, candidates[chosen].terms,
+                                 candidates[chosen].coefficients, dict(explicit.metadata))
+        explicit.metadata["selection"] = {"chosen": chosen, "training_error_pct": scores}
+        self.metrics_["training_error_pct"] = scores[chosen]
+        self._emit("selection", 0.99, losses={f"train_err_{k.replace(' ', '_')}": v for k, v in scores.items()})
         explicit.metadata["stage"] = "explicit"
         self.metrics_["explicit_nonzero"] = float(explicit.n_parameters)
         self.metrics_["hybrid_parameters"] = float(hybrid.n_parameters)
@@ -248,7 +259,7 @@ def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: Explici
 
     def progress(epoch, losses):
         if epoch % 5 == 0 or epoch == cfg.epochs - 1:
-            est._emit("training", 0.05 + 0.55 * (epoch + 1) / cfg.epochs, epoch=epoch, losses=losses)
+            est._emit("training", min(0.6, 0.05 + 0.55 * (epoch + 1) / cfg.epochs), epoch=epoch, losses=losses)
 
     try:
         history = train_hybrid(field, train, smallsignal, epochs=cfg.epochs, window=cfg.window,
@@ -263,10 +274,28 @@ def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: Explici
     return field
 
 
+def training_error(model, train: Dataset) -> float:
+    """ε (%) over all states of free-run simulations of the training records (inf if one diverges)."""
+    from ..analysis.metrics import relative_error
+
+    try:
+        pred = model.simulate(train)
+    except (FloatingPointError, ValueError):
+        return float("inf")
+    errs = [relative_error(p.x, t.x) for p, t in zip(pred, train)]
+    return float(np.mean(errs)) if np.all(np.isfinite(errs)) else float("inf")
+
+
 def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig,
-                    progress: Callable[[float, dict], None] | None = None) -> ExplicitModel:
+                    progress: Callable[[float, dict], None] | None = None) -> dict:
     """Multiple-shooting least-squares refinement of the nonzero coefficients of ``model``, then
-    pruning of the coefficients the data do not support (|t| < refine_prune_t) and a refit."""
+    rounds of pruning the coefficients the data do not support (|t| < refine_prune_t) and refitting.
+
+    Returns
+    -------
+    dict
+        ``{"refined": model, "pruned 1": model, ...}``: every round's model (the caller selects).
+    """
     from .noise import estimate_noise_std
     from .trajfit import TrajectoryFitter
 
@@ -275,17 +304,24 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     spread = np.concatenate([tr.x for tr in train]).std(axis=0)
     weights = 1.0 / np.maximum(noise, 1e-4 * spread + 1e-12)
     fitter = TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=cfg.refine_window,
-                              substeps=2, weights=weights,
-                              max_windows=cfg.refine_max_windows)
+                              substeps=2, weights=weights, max_windows=cfg.refine_max_windows)
     coef = model.coefficients.copy()
     mask = coef != 0
     rounds = 1 + cfg.refine_rounds
+    out = {}
     for r in range(rounds):
+        def on_evaluation(nfev, cost, r=r):
+            if progress:
+                progress((r + min(nfev / max(cfg.refine_max_nfev, 1), 1.0)) / rounds,
+                         {"refine_cost": cost, "nonzero": int(mask.sum()), "round": r})
+
         result = fitter.fit(coef, mask, train, smallsignal, lambda_jac=1.0 if smallsignal is not None else 0.0,
-                            max_nfev=cfg.refine_max_nfev)
+                            max_nfev=cfg.refine_max_nfev, on_evaluation=on_evaluation)
         coef = result.coefficients
-        if progress:
-            progress((r + 1) / rounds, {"refine_cost": result.cost, "nonzero": int(mask.sum())})
+        meta = dict(model.metadata)
+        meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds, "round": r}
+        out["refined" if r == 0 else f"pruned {r}"] = ExplicitModel(model.state_names, model.input_names,
+                                                                    model.terms, coef.copy(), meta)
         if r == rounds - 1 or cfg.refine_prune_t <= 0:
             break
         weak = mask & ~(result.t_values >= cfg.refine_prune_t)
@@ -293,9 +329,7 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
             break
         mask = mask & ~weak
         coef = np.where(mask, coef, 0.0)
-    meta = dict(model.metadata)
-    meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds}
-    return ExplicitModel(model.state_names, model.input_names, model.terms, coef, meta)
+    return out
 
 
 def make_estimator(method: str = "pisml", config: IdentConfig | None = None):

@@ -85,7 +85,8 @@ class TrajectoryFitter:
         self.max_windows = max_windows
 
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
-            lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5) -> FitResult:
+            lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
+            on_evaluation=None) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -192,10 +193,16 @@ class TrajectoryFitter:
         jac_theta = jacfwd(lambda th, xs: torch.cat([trajectory_residuals(th, xs), smallsignal_residuals(th)]))
         started = time.monotonic()
 
+        calls = [0]
+
         def fun(params):
             with torch.no_grad():
                 r = all_residuals(torch.tensor(params)).numpy()
-            return np.where(np.isfinite(r), r, 1e6)
+            r = np.where(np.isfinite(r), r, 1e6)
+            calls[0] += 1
+            if on_evaluation is not None:
+                on_evaluation(calls[0], float(0.5 * r @ r))
+            return r
 
         def jac(params):
             theta, x_start = split(torch.tensor(params))

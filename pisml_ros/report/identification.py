@@ -86,7 +86,8 @@ def plot_training_curves(history: dict, path: str | Path, title: str = "") -> Pa
         left.legend(fontsize=8)
     left.grid(alpha=0.3)
     updates = history.get("updates") or []
-    names = sorted({k for u in updates for k in u.get("losses", {})})
+    counts = {"terms", "nonzero", "n_terms", "n_nonzero"}  # sizes, not losses
+    names = sorted({k for u in updates for k in u.get("losses", {}) if k not in counts})
     for name in names:
         pts = [(u["t"], u["losses"][name]) for u in updates if name in u.get("losses", {})]
         t, y = np.array(pts, dtype=float).T

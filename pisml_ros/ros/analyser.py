@@ -233,7 +233,8 @@ class AnalyserNode(Node):
         if locus is not None:
             locus["model_id"] = model_id
             self.locus.publish(String(data=json.dumps(locus)))
-            self.get_logger().info(f"{model_id}: stability boundaries in ug {[round(b, 4) for b in locus['boundaries']]}")
+            bounds = [round(b, 4) for b in locus["boundaries"]]
+            self.get_logger().info(f"{model_id}: stability boundaries in ug {bounds}")
         if self.output_dir:
             out = Path(self.output_dir)
             atomic_write_text(out / "stability.json", json.dumps(

@@ -21,6 +21,7 @@ progress, the latest losses and the last error.
 from __future__ import annotations
 
 import json
+import os
 import queue
 import threading
 import time
@@ -44,6 +45,7 @@ from ..model import ExplicitModel  # noqa: E402
 from .conversions import model_message, overrides_from_assignments, overrides_from_fields  # noqa: E402
 
 RETRAIN_POLICIES = ("once", "on_new_data", "manual")
+STOP_TIMEOUT = 20.0  # s to wait for a running identification to stop when the node shuts down
 
 
 class Job:
@@ -61,6 +63,7 @@ class Job:
         self.metrics: dict = {}
         self.error = ""
         self.cancelled = False
+        self.thread: threading.Thread | None = None
 
     def should_stop(self) -> bool:
         handle = self.goal_handle
@@ -134,7 +137,7 @@ class IdentifierNode(Node):
         self.get_logger().info(
             f"listening on {MEASUREMENT_TOPIC}; method {self.method}, retrain_policy {self.retrain_policy}"
             f"{'' if self.retrain_policy == 'manual' else f', training after {self.min_trajectories} trajectories'}"
-            f"{f'; small-signal data {smallsignal_path} ({len(self.smallsignal)} records)' if self.smallsignal else ''}")
+            + (f"; small-signal data {smallsignal_path} ({len(self.smallsignal)} records)" if self.smallsignal else ""))
 
     # ------------------------------------------------------------------ measurements
     def _on_batch(self, msg: MeasurementBatch):
@@ -177,7 +180,8 @@ class IdentifierNode(Node):
             self.job = job
         self.get_logger().info(f"run {job.model_id}: training {method} on {origin}, {data.n_samples} samples"
                                f"{', with small-signal data' if self.smallsignal is not None else ''}")
-        threading.Thread(target=self._run_job, args=(job,), daemon=True, name=f"identify-{job.run}").start()
+        job.thread = threading.Thread(target=self._run_job, args=(job,), daemon=True, name=f"identify-{job.run}")
+        job.thread.start()
         return job
 
     def _run_job(self, job: Job):
@@ -186,6 +190,8 @@ class IdentifierNode(Node):
         started = time.monotonic()
 
         def callback(update):
+            if job.stop.is_set():
+                return  # shutting down: the publishers may be gone
             job.stage, job.progress, job.epoch = update.stage, float(update.progress), int(update.epoch)
             job.losses = {k: float(v) for k, v in update.losses.items() if _is_number(v)}
             self.history.append({"run": job.model_id, "t": round(time.monotonic() - started, 3),
@@ -216,6 +222,8 @@ class IdentifierNode(Node):
             self.get_logger().info(f"run {job.model_id} done in {time.monotonic() - started:.1f} s: {stage} model, "
                                    f"{job.result.n_parameters} parameters")
         except IdentificationCancelled as err:
+            if job.stop.is_set():
+                return
             job.cancelled, job.stage = True, "cancelled"
             self.get_logger().info(f"run {job.model_id}: {err}")
         except Exception as err:  # a failed run is reported, never kills the node
@@ -225,7 +233,9 @@ class IdentifierNode(Node):
             self.get_logger().error(job.error)
         finally:
             job.done.set()
-            self._publish_diagnostics()
+        if job.stop.is_set():
+            return  # the node is shutting down: nothing to publish or start
+        self._publish_diagnostics()
         self._maybe_train()  # data that arrived meanwhile
 
     def _publish_model(self, model, stage: str, model_id: str, metrics: dict) -> IdentifiedModel:
@@ -352,8 +362,19 @@ class IdentifierNode(Node):
         publish_diagnostics(self, self.diagnostics, [status("pisml: identifier", level, message, values)])
 
     def destroy_node(self):
-        if self.job is not None:
-            self.job.stop.set()
+        job = self.job
+        if job is not None and not job.done.is_set():
+            # stop the run first: a training thread alive at interpreter exit aborts the process (torch)
+            job.stop.set()
+            self.get_logger().info(f"stopping run {job.model_id} ...")
+            job.thread.join(STOP_TIMEOUT)
+            if job.thread.is_alive():
+                self.get_logger().warning(f"run {job.model_id} did not stop within {STOP_TIMEOUT:g} s; exiting anyway")
+                super().destroy_node()
+                import rclpy
+
+                rclpy.try_shutdown()
+                os._exit(0)
         super().destroy_node()
 
 

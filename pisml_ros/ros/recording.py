@@ -24,6 +24,7 @@ from pathlib import Path
 from .common import MEASUREMENT_TOPIC, MODEL_TOPIC, STABILITY_TOPIC, latched_qos, measurement_qos
 
 import rclpy  # noqa: E402  (common set up the loopback DDS environment first)
+from rclpy.duration import Duration  # noqa: E402
 from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.signals import SignalHandlerOptions  # noqa: E402
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
@@ -282,7 +283,13 @@ def play(bag, rate: float = 1.0, loop: bool = False, topics=None, wait_for_subsc
                 published += 1
             if not loop:
                 break
-        time.sleep(1.0)  # leave time for reliable delivery of the tail
+        # reliable delivery of the tail: wait until every matched subscriber acknowledged it
+        acked_start = time.monotonic()
+        for publisher in publishers.values():
+            if publisher.get_subscription_count() and not publisher.wait_for_all_acked(Duration(seconds=30)):
+                log(f"{publisher.topic_name}: not every subscriber acknowledged the last messages within 30 s")
+        if time.monotonic() - acked_start > 1.0:
+            log(f"all messages acknowledged after {time.monotonic() - acked_start:.1f} s")
     except KeyboardInterrupt:
         pass
     finally:

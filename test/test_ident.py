@@ -1,0 +1,162 @@
+"""Identification engine: configuration, backbone, baselines, the PISML pipeline on a small problem,
+metrics, and the `pisml identify` / `simulate --model` / `analyse --model` commands."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum_wasserstein
+from pisml_ros.data import read_dataset, write_dataset
+from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, make_estimator
+from pisml_ros.ident.backbone import fit_backbone
+from pisml_ros.ident.library import physics_library
+from pisml_ros.model import ExplicitModel
+from pisml_ros.plant import InverterPlant
+from pisml_ros.plant.scenarios import generate, schedules_for
+
+# a small, fast PISML configuration: the pipeline end to end in seconds
+FAST = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
+        "refine_rounds": 0, "distill_max_terms": 2}
+
+
+@pytest.fixture(scope="module")
+def plant():
+    return InverterPlant()
+
+
+@pytest.fixture(scope="module")
+def train(plant):
+    return generate(plant, *schedules_for("train", seed=3, n_traj=4, duration=0.02))
+
+
+@pytest.fixture(scope="module")
+def small(plant):
+    return generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.02))
+
+
+@pytest.fixture(scope="module")
+def test_set(plant):
+    return generate(plant, *schedules_for("test"))
+
+
+def test_config_rejects_unknown_and_bad_values(tmp_path):
+    with pytest.raises(ConfigError, match="unknown key.*'epoch'"):
+        IdentConfig.from_mapping({"epoch": 3})
+    with pytest.raises(ConfigError, match="epochs must be > 0"):
+        IdentConfig.from_mapping({"epochs": 0})
+    with pytest.raises(ConfigError, match="dropout = 'x'"):
+        IdentConfig.from_mapping({"dropout": "x"})
+    cfg = IdentConfig.from_mapping({"epochs": "7", "hidden": "32,16", "refine": "false"})
+    assert cfg.epochs == 7 and cfg.hidden == (32, 16) and cfg.refine is False
+    path = tmp_path / "ident.yaml"
+    path.write_text("identification:\n  epochs: 9\n  roles:\n    angle: delta\n")
+    assert IdentConfig.load(path, {"window": 5}).epochs == 9
+    path.write_text("identification:\n  roles:\n    angel: delta\n")
+    with pytest.raises(ValueError, match="unknown key"):
+        IdentConfig.load(path)
+
+
+def test_backbone_is_fast_sparse_and_close(train, test_set):
+    model = fit_backbone(train, physics_library(IdentConfig().roles, train.state_names), threshold=0.02)
+    assert model.n_parameters < 18 * 13
+    errs = protocol_errors(model, test_set)
+    # Θ cannot hold the vo = vc + Rd(il - ig) products, and 4 short records are little data:
+    # a few per cent, not more
+    assert errs["iod"] < 10 and errs["ood"] < 10
+
+
+@pytest.mark.parametrize("method", ["mod-sindy", "std-sindy"])
+def test_sindy_baselines_give_rebuildable_explicit_models(method, train, tmp_path):
+    est = make_estimator(method).fit(train)
+    assert est.explicit_model_ is est.model_
+    path = est.explicit_model_.save(tmp_path / "m.json")
+    again = ExplicitModel.load(path)
+    x, u = train.trajectories[0].x[:5], train.trajectories[0].u[:5]
+    np.testing.assert_allclose(again.vector_field(x, u), est.model_.vector_field(x, u), rtol=1e-10, atol=1e-8)
+    assert est.metrics_["n_parameters"] == est.model_.n_parameters
+
+
+def test_pisml_pipeline_stages_and_model(train, small, test_set):
+    updates = []
+    est = make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(train, small, callback=updates.append)
+    stages = [u.stage for u in updates if u.model is not None]
+    assert stages == ["backbone", "hybrid", "explicit"]
+    progress = [u.progress for u in updates]
+    assert progress == sorted(progress) and progress[-1] == 1.0
+    model = est.explicit_model_
+    assert isinstance(model, ExplicitModel) and model.metadata["stage"] == "explicit"
+    assert est.hybrid_.n_parameters > 10 * model.n_parameters
+    # the merged model uses products that Θ alone does not have
+    assert any("*" in t and "+" not in t and "cos" not in t for t in model.terms)
+    # JSON round trip rebuilds the same field
+    again = ExplicitModel.from_dict(json.loads(model.to_json()))
+    x, u = train.trajectories[1].x[:3], train.trajectories[1].u[:3]
+    np.testing.assert_allclose(again.vector_field(x, u), model.vector_field(x, u), rtol=1e-12)
+    errs = protocol_errors(model, test_set)
+    assert errs["iod"] < 10 and errs["ood"] < 10
+    eig = model.eigenvalues(0.8, 0.0)
+    assert eig.shape == (13,) and np.all(np.isfinite(eig))
+
+
+def test_pure_node_has_no_explicit_model_but_a_spectrum(train):
+    cfg = IdentConfig.from_mapping({"epochs": 3, "batch_windows": 8})
+    est = make_estimator("node", cfg).fit(train)
+    assert est.explicit_model_ is None
+    assert est.model_.n_parameters > 10000
+    pred = est.model_.simulate(train.select([train.trajectories[0].traj_id]))
+    assert pred.trajectories[0].x.shape == train.trajectories[0].x.shape
+    jac = est.model_.jacobian(train.trajectories[0].x[0], train.trajectories[0].u[0])
+    assert jac.shape == (13, 13)
+
+
+def test_fit_can_be_cancelled(train, small):
+    calls = []
+
+    def should_stop():
+        calls.append(1)
+        return len(calls) > 3
+
+    with pytest.raises(IdentificationCancelled):
+        make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(train, small, should_stop=should_stop)
+
+
+def test_unknown_method_is_named():
+    with pytest.raises(ValueError, match="unknown method 'sindy'"):
+        make_estimator("sindy")
+
+
+def test_metrics():
+    y = np.ones((10, 2))
+    assert relative_error(y, y) == 0
+    assert math.isclose(relative_error(1.1 * y, y), 10.0)
+    assert relative_error(np.full((10, 2), np.nan), y) == math.inf
+    a = np.array([-1 + 2j, -1 - 2j, -5])
+    assert spectrum_wasserstein(a, a) == 0
+    assert math.isclose(spectrum_wasserstein(a, a + 3), 3.0)
+    assert spectrum_wasserstein(a, a[:2]) > 0
+
+
+def test_identify_simulate_analyse_cli(tmp_path, train, capsys):
+    from pisml_ros.cli import main
+
+    data = write_dataset(train, tmp_path / "train.csv")
+    out = tmp_path / "model.json"
+    assert main(["identify", "--data", str(data), "--method", "mod-sindy", "--out", str(out), "--quiet"]) == 0
+    model = ExplicitModel.load(out)
+    assert model.metadata["identification"]["method"] == "mod-sindy"
+    pred = tmp_path / "pred.csv"
+    assert main(["simulate", "--model", str(out), "--data", str(data), "--out", str(pred)]) == 0
+    assert len(read_dataset(pred)) == len(train)
+    capsys.readouterr()
+    assert main(["analyse", "--model", str(out), "--ug", "0.9", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert len(report["eigenvalues"]) == 13 and "stable" in report
+    # user errors: one line, status 2
+    assert main(["identify", "--data", str(data), "--method", "nope", "--out", str(out)]) == 2
+    assert main(["identify", "--data", str(data), "--set", "epochs=-1", "--out", str(out)]) == 2
+    assert main(["identify", "--data", str(data), "--out", str(tmp_path / "m.txt")]) == 2
+    assert main(["simulate", "--model", str(out), "--out", str(pred)]) == 2
+    err = capsys.readouterr().err
+    assert "unknown method" in err or "choose one of" in err
+    assert "epochs must be > 0" in err
