@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: env demo test test-fast bags bench-gap clean
+.PHONY: env demo test test-fast bags bench bench-quick bench-gap clean
 
 env:
 	@bash scripts/bootstrap_env.sh
@@ -26,6 +26,14 @@ bags: env
 	$(VENV)/bin/pisml simulate --scenario train --snr-db 40 --seed 0 --out bags/train_40dB
 	$(VENV)/bin/pisml simulate --scenario test --seed 0 --out bags/test_clean
 	$(VENV)/bin/pisml simulate --scenario smallsignal --snr-db 40 --seed 0 --out bags/smallsignal_40dB
+
+# identification benchmark (paper protocol; ~30 min on 2 cores): bench/results.json, bench/RESULTS.md, bench/figures/
+bench: env
+	$(PY) bench/bench.py
+
+# the same on the standard plant only, clean and 40 dB, no sweeps (~8 min)
+bench-quick: env
+	$(PY) bench/bench.py --quick --out bench/results_quick.json --markdown bench/RESULTS_quick.md
 
 # gap workflow benchmark (quick matrix, ~10 min on 2 cores): bench/gap_results.json, bench/GAP_RESULTS.md
 bench-gap: env

@@ -197,14 +197,14 @@ def main(argv=None) -> int:
             plot_spectra(figure_spectra, fig_dir / f"spectra_{plant_name}_{noise.replace(' ', '')}.png",
                          title=f"eigenvalues at ug 0.8 ({plant_name}, {noise})")
     if not args.quick and "pisml" in methods:
-        for n_traj in (3, 6):
+        for n_traj in (6,):
             plant, train, small, test = datasets({}, 40.0, n_traj=n_traj)
             truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
             row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant), truth, config, f"n_traj {n_traj}")
             row.update(sweep="n_traj", n_traj=n_traj)
             runs.append(row)
             print(f"n_traj {n_traj}: IOD {fmt(row.get('iod'))} OOD {fmt(row.get('ood'))} {row['seconds']:.1f} s", flush=True)
-        for snr in (20.0, 30.0, 60.0):
+        for snr in (20.0, 60.0):
             plant, train, small, test = datasets({}, snr)
             truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
             row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant), truth, config, f"snr {snr}")

@@ -87,15 +87,6 @@ def test_effects_listing():
         assert name in text
 
 
-def test_demo_writes_its_report(tmp_path):
-    proc = pisml("demo", "--out", tmp_path / "demo")
-    assert "stability boundary in grid voltage: ug = 1.16" in proc.stdout
-    report = json.loads((tmp_path / "demo" / "stability.json").read_text())
-    assert report["operating_points"]["1.2"]["stable"] is False
-    for name in ("eigenvalues.png", "stability_scan.png", "test_trajectories.png"):
-        assert (tmp_path / "demo" / name).stat().st_size > 10_000
-
-
 @pytest.mark.slow
 def test_gap_command_names_the_hidden_limit(tmp_path):
     data = tmp_path / "hil.csv"

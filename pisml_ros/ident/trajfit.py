@@ -198,7 +198,8 @@ class TrajectoryFitter:
         def fun(params):
             with torch.no_grad():
                 r = all_residuals(torch.tensor(params)).numpy()
-            r = np.where(np.isfinite(r), r, 1e6)
+            # a trial step that makes a window blow up is just a bad step (large, finite residuals)
+            r = np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
             calls[0] += 1
             if on_evaluation is not None:
                 on_evaluation(calls[0], float(0.5 * r @ r))

@@ -116,8 +116,16 @@ class MeasurementNode(Node):
             self.get_logger().info(f"done: published {self.published_samples} samples")
             self._publish_diagnostics()
             if self.exit_when_done:
-                # leave time for reliable delivery of the tail before shutting down
-                self.create_timer(1.0, lambda: rclpy.try_shutdown())
+                self.create_timer(0.2, self._shutdown_when_acked)
+
+    def _shutdown_when_acked(self):
+        # reliable delivery of the tail: Fast DDS may take seconds to resend what a reader missed,
+        # so wait for every matched reader to acknowledge before shutting down (bounded)
+        from rclpy.duration import Duration
+
+        if self.publisher.get_subscription_count() and not self.publisher.wait_for_all_acked(Duration(seconds=30)):
+            self.get_logger().warning("not every subscriber acknowledged the last batches within 30 s")
+        rclpy.try_shutdown()
 
     def _publish_diagnostics(self):
         publish_diagnostics(self, self.diagnostics, [status(
