@@ -222,6 +222,7 @@ class PISML(_Estimator):
         # 5. the explicit model is the candidate that best reproduces the training records when run
         # freely from their first samples: refinement or pruning that made things worse is dropped
         scores = {name: training_error(model, train) for name, model in candidates.items()}
+        self.candidates_ = candidates
         chosen = min(scores, key=lambda name: scores[name])
         explicit = ExplicitModel(train.state_names, train.input_names, candidates[chosen].terms,
                                  candidates[chosen].coefficients, dict(explicit.metadata))
