@@ -90,3 +90,14 @@ def wait_future(node, future, timeout: float):
 def stop_all(*procs) -> list:
     """Stop every process (None entries skipped) before anything is asserted; their exit statuses."""
     return [stop_node(p) for p in procs if p is not None]
+
+
+def probe_node(name: str):
+    """A plain rclpy node for a test module to subscribe with (generator for a module-scoped fixture)."""
+    import rclpy
+
+    rclpy.init()
+    node = rclpy.create_node(name)
+    yield node
+    node.destroy_node()
+    rclpy.shutdown()

@@ -16,8 +16,8 @@ from pisml_ros.data import read_csv, read_dataset, write_csv
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
 
-from ros_helpers import (diagnostic_values, spin_until, start_cli, start_node, stop_all, stop_node, wait_for_log,
-                         wait_future)
+from ros_helpers import (diagnostic_values, probe_node, spin_until, start_cli, start_node, stop_all, stop_node,
+                         wait_for_log, wait_future)
 
 rclpy = pytest.importorskip("rclpy")
 from action_msgs.msg import GoalStatus  # noqa: E402
@@ -39,11 +39,7 @@ TINY_PISML = {"hidden": "16,16", "batch_windows": "8", "window": "10", "epochs":
 
 @pytest.fixture(scope="module")
 def probe():
-    rclpy.init()
-    node = rclpy.create_node("pisml_identify_probe")
-    yield node
-    node.destroy_node()
-    rclpy.shutdown()
+    yield from probe_node("pisml_identify_probe")
 
 
 @pytest.fixture(scope="module")

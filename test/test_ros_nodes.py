@@ -8,7 +8,7 @@ from pisml_ros.data import read_csv, write_csv
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
 
-from ros_helpers import spin_until, start_node, stop_all, stop_node
+from ros_helpers import diagnostic_values, probe_node, spin_until, start_node, stop_all, stop_node
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -21,19 +21,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 @pytest.fixture(scope="module")
 def probe():
-    rclpy.init()
-    node = rclpy.create_node("pisml_test_probe")
-    yield node
-    node.destroy_node()
-    rclpy.shutdown()
-
-
-def _diagnostic_values(msgs, name):
-    for msg in reversed(msgs):
-        for status in msg.status:
-            if status.name == name:
-                return status, {kv.key: kv.value for kv in status.values}
-    return None, {}
+    yield from probe_node("pisml_test_probe")
 
 
 def test_analyser_publishes_latched_plant_stability(probe, tmp_path):
@@ -73,11 +61,11 @@ def test_measurement_to_identifier_carries_every_sample(probe, tmp_path):
                       log_dir=tmp_path)
     try:
         def identifier_has_all():
-            _, values = _diagnostic_values(diags, "pisml: identifier")
+            _, values = diagnostic_values(diags, "pisml: identifier")
             return values.get("complete_trajectories") == "3"
 
         assert spin_until(probe, identifier_has_all, 40.0), ident.log_path.read_text() + meas.log_path.read_text()
-        _, values = _diagnostic_values(diags, "pisml: identifier")
+        _, values = diagnostic_values(diags, "pisml: identifier")
         assert values["buffered_samples"] == str(data.n_samples) and values["rejected_batches"] == "0"
         # what travelled on the topic is the file, sample for sample
         got = {}
@@ -115,17 +103,17 @@ def test_identifier_rejects_malformed_batches_and_keeps_running(probe, tmp_path)
             pub.publish(msg)
 
         def rejected(n):
-            return lambda: _diagnostic_values(diags, "pisml: identifier")[1].get("rejected_batches") == str(n)
+            return lambda: diagnostic_values(diags, "pisml: identifier")[1].get("rejected_batches") == str(n)
 
         assert spin_until(probe, rejected(4), 20.0), ident.log_path.read_text()
-        status, values = _diagnostic_values(diags, "pisml: identifier")
+        status, values = diagnostic_values(diags, "pisml: identifier")
         assert status.level == status.WARN and "field" in values["last_error"]
         # wrong dt for the buffer / unknown names after a good batch
         pub.publish(batch())
         pub.publish(batch(trajectory_id=1, dt=2e-4))
         pub.publish(batch(trajectory_id=2, state_names=["a", "zz"]))
         assert spin_until(probe, rejected(6), 20.0)
-        assert spin_until(probe, lambda: _diagnostic_values(diags, "pisml: identifier")[1].get(
+        assert spin_until(probe, lambda: diagnostic_values(diags, "pisml: identifier")[1].get(
             "complete_trajectories") == "1", 10.0)
         assert ident.poll() is None  # still running
     finally:

@@ -35,3 +35,33 @@ def integral_form(dataset: Dataset, terms: TermSet, span: int = 10, stride: int 
         rows_a.append(cum[starts + span] - cum[starts])
         rows_b.append(tr.x[starts + span] - tr.x[starts])
     return np.concatenate(rows_a), np.concatenate(rows_b)
+
+
+def trajectory_windows(dataset: Dataset, window: int, stride: int | None = None, max_windows: int | None = None):
+    """States and inputs of windows of ``window`` samples (+1 for the end point) cut from every trajectory.
+
+    Parameters
+    ----------
+    stride : int, optional
+        Samples between window starts (default: ``window``, i.e. back to back).
+    max_windows : int, optional
+        Keep at most this many, evenly spread over all trajectories and times (the cost of a
+        trajectory fit is linear in the windows).
+
+    Returns
+    -------
+    x : ndarray, shape (n_windows, window + 1, n_states)
+    u : ndarray, shape (n_windows, window + 1, n_inputs)
+    """
+    stride = stride or window
+    xs, us = [], []
+    for tr in dataset:
+        for start in range(0, len(tr) - window, stride):
+            xs.append(tr.x[start:start + window + 1])
+            us.append(tr.u[start:start + window + 1])
+    if not xs:
+        raise ValueError(f"no trajectory is longer than the window ({window} samples)")
+    if max_windows is not None and len(xs) > max_windows:
+        keep = np.linspace(0, len(xs) - 1, max_windows).round().astype(int)
+        xs, us = [xs[k] for k in keep], [us[k] for k in keep]
+    return np.array(xs), np.array(us)

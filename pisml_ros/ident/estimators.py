@@ -21,7 +21,7 @@ import numpy as np
 from ..data import Dataset
 from ..model import ExplicitModel
 from ..model.expressions import term_set
-from .backbone import fit_backbone, reference_points, sparse_regression
+from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
 from .library import extended_library, physics_library
 

@@ -21,11 +21,12 @@ from typing import Callable
 
 import numpy as np
 
-from ..data import Dataset, Trajectory
+from ..data import Dataset
 from ..data.dataset import steady_start_length
 from ..equilibrium import find_equilibrium
-from ..integrate import simulate_many
+from ..model.replay import replay
 from ..model.expressions import term_set
+from .derivatives import trajectory_windows
 
 
 def _torch():
@@ -107,17 +108,6 @@ class TrainingHistory:
         return dataclasses.asdict(self)
 
 
-def _windows(dataset: Dataset, window: int):
-    xs, us = [], []
-    for tr in dataset:
-        for start in range(0, len(tr) - window, max(window // 2, 1)):
-            xs.append(tr.x[start:start + window + 1])
-            us.append(tr.u[start:start + window + 1])
-    if not xs:
-        raise ValueError(f"no trajectory is longer than the training window ({window} samples)")
-    return np.array(xs), np.array(us)
-
-
 def smallsignal_pairs(smallsignal: Dataset | None, span: int = 10):
     """Per small-signal record: its pre-step steady state and integral-form deviation pairs.
 
@@ -165,7 +155,7 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    xw, uw = _windows(train, window)
+    xw, uw = trajectory_windows(train, window, stride=max(window // 2, 1))
     X, U = torch.as_tensor(xw), torch.as_tensor(uw)
     dt = float(train.dt)
     field.dt = dt
@@ -303,9 +293,4 @@ class NeuralModel:
 
     def simulate(self, dataset: Dataset, substeps: int = 4, method: str = "rk4") -> Dataset:
         """Replay each trajectory's measured inputs from its measured initial state."""
-        cols = dataset.state_index(self.state_names)
-        icols = [dataset.input_names.index(n) for n in self.input_names]
-        preds = simulate_many(self, [tr.x[0, cols] for tr in dataset], [tr.u[:, icols] for tr in dataset],
-                              dataset.dt, substeps=substeps, method=method)
-        out = [Trajectory(tr.traj_id, tr.t.copy(), p, tr.u[:, icols]) for tr, p in zip(dataset, preds)]
-        return Dataset(self.state_names, self.input_names, out, {"dt": dataset.dt, "source": "simulation"})
+        return replay(self, dataset, substeps=substeps, method=method)

@@ -27,6 +27,7 @@ import scipy.sparse
 from ..data import Dataset
 from ..data.dataset import steady_start_length
 from ..model.expressions import TermSet
+from .derivatives import trajectory_windows
 
 
 @dataclasses.dataclass
@@ -36,21 +37,6 @@ class FitResult:
     nfev: int
     seconds: float
     t_values: np.ndarray  # coefficient / standard error (support entries), nan where undetermined
-
-
-def _windows(dataset: Dataset, window: int, max_windows: int | None = None):
-    xs, us = [], []
-    for tr in dataset:
-        for start in range(0, len(tr) - window, window):
-            xs.append(tr.x[start:start + window + 1])
-            us.append(tr.u[start:start + window + 1])
-    if not xs:
-        raise ValueError(f"no trajectory is longer than the window ({window} samples)")
-    if max_windows is not None and len(xs) > max_windows:
-        # evenly spread over all trajectories and times: the cost of a fit is linear in the windows
-        keep = np.linspace(0, len(xs) - 1, max_windows).round().astype(int)
-        xs, us = [xs[k] for k in keep], [us[k] for k in keep]
-    return np.array(xs), np.array(us)
 
 
 def _steady_start(tr, min_samples=5):
@@ -103,7 +89,7 @@ class TrajectoryFitter:
 
         torch.set_default_dtype(torch.float64)
         n = self.n_states
-        xw, uw = _windows(train, self.window, self.max_windows)
+        xw, uw = trajectory_windows(train, self.window, max_windows=self.max_windows)
         X = torch.tensor(xw)
         U = torch.tensor(uw)
         w = torch.tensor(self.weights)

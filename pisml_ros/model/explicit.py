@@ -14,10 +14,10 @@ from typing import Any, Sequence
 import numpy as np
 import sympy
 
-from ..data import Dataset, Trajectory
-from ..equilibrium import EquilibriumNotFound, find_equilibrium
+from ..data import Dataset
+from ..equilibrium import EquilibriumNotFound, find_equilibrium  # noqa: F401  (re-exported by pisml_ros.model)
 from ..fileio import atomic_write_text
-from ..integrate import simulate_many
+from .replay import replay
 from .expressions import ExpressionError, term_set
 
 FORMAT = "pisml-explicit-model/1"
@@ -110,18 +110,7 @@ class ExplicitModel:
         Dataset
             Predicted states on the same time grid (non-finite after a divergence).
         """
-        if tuple(dataset.state_names) != self.state_names or tuple(dataset.input_names) != self.input_names:
-            cols = dataset.state_index(self.state_names)
-            missing = [n for n in self.input_names if n not in dataset.input_names]
-            if missing:
-                raise ValueError(f"dataset lacks the model's input(s) {missing}")
-            icols = [dataset.input_names.index(n) for n in self.input_names]
-        else:
-            cols, icols = list(range(self.n_states)), list(range(len(self.input_names)))
-        preds = simulate_many(self, [tr.x[0, cols] for tr in dataset], [tr.u[:, icols] for tr in dataset],
-                              dataset.dt, substeps=substeps, method=method)
-        out = [Trajectory(tr.traj_id, tr.t.copy(), p, tr.u[:, icols]) for tr, p in zip(dataset, preds)]
-        return Dataset(self.state_names, self.input_names, out, {"dt": dataset.dt, "source": "simulation"})
+        return replay(self, dataset, substeps=substeps, method=method)
 
     # ---------------------------------------------------------------- symbolic views
     def equations(self, digits: int = 6, threshold: float = 0.0) -> list[str]:
