@@ -51,10 +51,22 @@ def datasets(effects, snr, seed=0, n_traj=12):
     return plant, train, small, test
 
 
-def ug_sweep_set(plant):
+def plant_grid(plant):
+    """The points of UG_GRID where the plant has an equilibrium (a current limit can leave low ug without one)."""
+    grid = []
+    for g in UG_GRID:
+        try:
+            plant.equilibrium(g, 0.0)
+            grid.append(g)
+        except Exception:
+            pass
+    return grid
+
+
+def ug_sweep_set(plant, grid):
     """One trajectory per ug of the grid: from equilibrium, an 8° phase jump at 8 ms and a 10 % sag at 20 ms."""
     schedules = [Schedule(g, 0.0, [(0.008, "theta_g", math.radians(8.0)), (0.02, "ug", 0.9 * g)], label=f"ug-{g}")
-                 for g in UG_GRID]
+                 for g in grid]
     return generate(plant, schedules, 0.04)
 
 
@@ -94,16 +106,18 @@ def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, lab
             row[key] = est.metrics_[key]
     errs = protocol_errors(est.model_, test)
     row.update(iod=finite(errs["iod"]), ood=finite(errs["ood"]))
-    model_spectra = spectra(est.model_, UG_GRID)
+    grid = list(truth_spectra)
+    model_spectra = spectra(est.model_, grid)
     w = {g: (spectrum_wasserstein(model_spectra[g], truth_spectra[g]) if model_spectra[g] is not None else None)
-         for g in UG_GRID}
+         for g in grid}
     row["wasserstein_ug08"] = finite(w[0.8])
     vals = [v for v in w.values() if v is not None and np.isfinite(v)]
-    row["wasserstein_mean"] = float(np.mean(vals)) if len(vals) == len(UG_GRID) else None
+    row["wasserstein_mean"] = float(np.mean(vals)) if len(vals) == len(grid) else None
+    row["ug_grid"] = grid
     row["spectra_found"] = sum(v is not None for v in model_spectra.values())
-    row["spurious_unstable"] = [g for g in UG_GRID if g <= 1.1 and model_spectra[g] is not None
+    row["spurious_unstable"] = [g for g in grid if g <= 1.1 and model_spectra[g] is not None
                                 and model_spectra[g].real.max() > 0 > truth_spectra[g].real.max()]
-    row["missed_unstable"] = [g for g in UG_GRID if truth_spectra[g].real.max() > 0
+    row["missed_unstable"] = [g for g in grid if truth_spectra[g].real.max() > 0
                               and (model_spectra[g] is None or model_spectra[g].real.max() <= 0)]
     if hasattr(est, "hybrid_"):
         row["hybrid_parameters"] = int(est.hybrid_.n_parameters)
@@ -144,7 +158,8 @@ def write_markdown(results, path):
                   "| plant | noise | method | " + " | ".join(f"ug {g}" for g in UG_GRID) +
                   " | mean increase (pp) | compression |", "|---|---|---|" + "---|" * (len(UG_GRID) + 2)]
         for r in hyb:
-            pairs = [f"{fmt(h)} → {fmt(e)}" for h, e in zip(r["sweep_hybrid"], r["sweep_explicit"])]
+            by_ug = dict(zip(r["ug_grid"], zip(r["sweep_hybrid"], r["sweep_explicit"])))
+            pairs = [f"{fmt(by_ug[g][0])} → {fmt(by_ug[g][1])}" if g in by_ug else "no equilibrium" for g in UG_GRID]
             inc = [e - h for h, e in zip(r["sweep_hybrid"], r["sweep_explicit"]) if h is not None and e is not None]
             comp = r["hybrid_parameters"] / max(r["n_parameters"], 1)
             lines.append(f"| {r['plant']} | {r['noise']} | {r['method']} | " + " | ".join(pairs) +
@@ -181,13 +196,15 @@ def main(argv=None) -> int:
         for snr in (None, 40.0):
             noise = "clean" if snr is None else f"{snr:g} dB"
             plant, train, small, test = datasets(effects, snr)
-            sweep = ug_sweep_set(plant)
-            truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
+            grid = plant_grid(plant)
+            sweep = ug_sweep_set(plant, grid)
+            truth = {g: plant.eigenvalues(g, 0.0) for g in grid}
             figure_spectra = {"truth": truth[0.8]}
             for method in methods:
                 row, est = run_fit(method, plant, train, small, test, sweep, truth, config, f"{plant_name}/{noise}")
                 row.update(plant=plant_name, noise=noise, sweep="main")
                 runs.append(row)
+                save(args, runs, started, config)
                 if row.get("_spectrum_ug08"):
                     figure_spectra[method] = np.array([complex(a, b) for a, b in row["_spectrum_ug08"]])
                 print(f"{plant_name:10s} {noise:6s} {method:12s} IOD {fmt(row.get('iod')):>8} % OOD "
@@ -200,18 +217,29 @@ def main(argv=None) -> int:
         for n_traj in (6,):
             plant, train, small, test = datasets({}, 40.0, n_traj=n_traj)
             truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
-            row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant), truth, config, f"n_traj {n_traj}")
+            row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant, UG_GRID), truth, config,
+                             f"n_traj {n_traj}")
             row.update(sweep="n_traj", n_traj=n_traj)
             runs.append(row)
+            save(args, runs, started, config)
             print(f"n_traj {n_traj}: IOD {fmt(row.get('iod'))} OOD {fmt(row.get('ood'))} {row['seconds']:.1f} s", flush=True)
         for snr in (20.0, 60.0):
             plant, train, small, test = datasets({}, snr)
             truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
-            row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant), truth, config, f"snr {snr}")
+            row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant, UG_GRID), truth, config,
+                             f"snr {snr}")
             row.update(sweep="snr", snr=snr)
             runs.append(row)
+            save(args, runs, started, config)
             print(f"snr {snr:g}: IOD {fmt(row.get('iod'))} OOD {fmt(row.get('ood'))} {row['seconds']:.1f} s", flush=True)
+    save(args, runs, started, config, final=True)
+    return 0
+
+
+def save(args, runs, started, config, final=False):
+    """Write the results JSON (and, at the end, the markdown); called after every fit so a crash loses nothing."""
     results = {
+        "complete": final,
         "command": "python bench/bench.py" + (" --quick" if args.quick else ""),
         "mode": "quick" if args.quick else "full",
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
@@ -221,9 +249,9 @@ def main(argv=None) -> int:
         "runs": [{k: v for k, v in r.items() if not k.startswith("_")} for r in runs],
     }
     Path(args.out).write_text(json.dumps(results, indent=2, default=float))
-    write_markdown(results, Path(args.markdown))
-    print(f"wrote {args.out}, {args.markdown} ({results['total_seconds']:.0f} s)")
-    return 0
+    if final:
+        write_markdown(results, Path(args.markdown))
+        print(f"wrote {args.out}, {args.markdown} ({results['total_seconds']:.0f} s)")
 
 
 if __name__ == "__main__":

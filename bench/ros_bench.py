@@ -1,0 +1,169 @@
+"""Benchmark of the live graph: link throughput/latency, model stage times, memory.
+
+    python bench/ros_bench.py [--seconds 60] [--out bench/ros_results.json]
+
+Starts the measurement node (virtual HIL, training scenario at 40 dB, looped, paced in real
+time: 10 kHz of 13 states + 2 inputs), the identifier (PISML, retraining on new data, so it
+trains while the link runs) and the analyser as separate processes on loopback DDS. A probe
+subscriber in this process counts every sample and its latency (header stamp → arrival), checks
+that each trajectory's samples arrive without gaps, and times the stages: 12th trajectory
+complete → backbone / hybrid / explicit model on /pisml/model → StabilityReport. Node memory
+(VmRSS) is sampled every second. Prints the figures and writes them to the results JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pisml_ros.ros.dds_env import configure_loopback_dds
+
+BENCH = Path(__file__).resolve().parent
+
+
+def rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=60.0, help="length of the link test (s of real time)")
+    parser.add_argument("--out", default=str(BENCH / "ros_results.json"))
+    args = parser.parse_args(argv)
+    configure_loopback_dds()
+    os.environ.setdefault("ROS_DOMAIN_ID", str(50 + os.getpid() % 50))
+    import rclpy
+    from pisml_msgs.msg import IdentifiedModel, MeasurementBatch, StabilityReport
+
+    from pisml_ros.ros.common import MEASUREMENT_TOPIC, MODEL_TOPIC, latched_qos, measurement_qos
+
+    work = Path(tempfile.mkdtemp(prefix="pisml_ros_bench_"))
+    params = work / "params.yaml"
+    params.write_text(f"""
+measurement:
+  ros__parameters: {{source: sim, scenario: train, snr_db: 40.0, seed: 0, rate: 1.0, loop: true,
+                     wait_for_subscribers: 3, start_delay: 1.0}}
+identifier:
+  ros__parameters: {{method: pisml, min_trajectories: 12, retrain_policy: on_new_data,
+                     retrain_min_new_trajectories: 12, output_dir: "{work / 'identifier'}",
+                     smallsignal_path: "{BENCH.parent / 'bags' / 'smallsignal_40dB'}"}}
+analyser:
+  ros__parameters: {{ug_points: [0.8, 1.0], sweep_points: 0}}
+""")
+    procs = {}
+    for name in ("analyser", "identifier", "measurement"):
+        procs[name] = subprocess.Popen([sys.executable, "-m", f"pisml_ros.ros.{name}", "--ros-args",
+                                        "--params-file", str(params)], stdout=open(work / f"{name}.log", "w"),
+                                       stderr=subprocess.STDOUT)
+    rclpy.init()
+    node = rclpy.create_node("pisml_ros_bench_probe")
+    samples = [0]
+    latencies = []
+    last_index: dict = {}
+    gaps = [0]
+    ended = []
+    events: dict = {}
+    t0 = time.monotonic()
+
+    def on_batch(msg):
+        now = node.get_clock().now().nanoseconds
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        latencies.append((now - stamp) / 1e6)
+        n = len(msg.x) // max(len(msg.state_names), 1)
+        samples[0] += n
+        key = int(msg.trajectory_id)
+        first = int(msg.first_sample_index)
+        expected = last_index.get(key)
+        if expected is not None and first not in (expected, 0):  # 0: the looped scenario starts again
+            gaps[0] += 1
+        last_index[key] = first + n
+        if msg.end_of_trajectory:
+            ended.append(time.monotonic())
+            if len(ended) == 12:
+                events["12th_trajectory"] = time.monotonic()
+
+    def on_model(msg):
+        key = f"model_{msg.stage}"
+        events.setdefault(key, time.monotonic())
+        events.setdefault(f"{key}_id", msg.model_id)
+
+    def on_report(msg):
+        events.setdefault(f"report_{msg.model_id}", time.monotonic())
+
+    node.create_subscription(MeasurementBatch, MEASUREMENT_TOPIC, on_batch, measurement_qos(5000))
+    node.create_subscription(IdentifiedModel, MODEL_TOPIC, on_model, latched_qos())
+    node.create_subscription(StabilityReport, "/pisml/stability", on_report, latched_qos(8))
+    memory = {name: [] for name in procs}
+    link_start = None
+    deadline = time.monotonic() + args.seconds + 600
+    next_sample = 0.0
+    try:
+        while time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+            now = time.monotonic()
+            if samples[0] and link_start is None:
+                link_start = now
+            if now >= next_sample:
+                for name, proc in procs.items():
+                    memory[name].append((now - t0, rss_mb(proc.pid)))
+                next_sample = now + 1.0
+            if any(p.poll() is not None for p in procs.values()):
+                raise SystemExit(f"a node exited early; logs in {work}")
+            if link_start and now - link_start >= args.seconds and "model_explicit" in events and \
+                    f"report_{events['model_explicit_id']}" in events:
+                break
+    finally:
+        for proc in procs.values():
+            proc.terminate()
+        for proc in procs.values():
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        node.destroy_node()
+        rclpy.shutdown()
+    link_seconds = time.monotonic() - link_start if link_start else 0.0
+    # the measurement node's own count, from its log ("published N samples" is logged per pass)
+    lat = np.array(latencies)
+    twelfth = events.get("12th_trajectory")
+
+    def after(key):
+        return round(events[key] - twelfth, 3) if key in events and twelfth else None
+
+    result = {
+        "command": "python bench/ros_bench.py" + (f" --seconds {args.seconds:g}" if args.seconds != 60 else ""),
+        "date": time.strftime("%Y-%m-%d"), "machine": f"{os.cpu_count()} cores",
+        "link": {"seconds": round(link_seconds, 1), "samples_received": samples[0],
+                 "samples_per_second": round(samples[0] / link_seconds, 1) if link_seconds else None,
+                 "batches": len(latencies), "index_gaps": gaps[0],
+                 "latency_ms": {f"p{q}": round(float(np.percentile(lat, q)), 3) for q in (50, 90, 99, 100)}
+                 if lat.size else None},
+        "stages_after_12th_trajectory_s": {stage: after(f"model_{stage}") for stage in ("backbone", "hybrid", "explicit")},
+        "report_after_model_s": {stage: (round(events[f"report_{events[f'model_{stage}_id']}"] - events[f"model_{stage}"], 3)
+                                         if f"model_{stage}_id" in events and
+                                         f"report_{events[f'model_{stage}_id']}" in events else None)
+                                 for stage in ("backbone", "explicit")},
+        "memory_mb": {name: {"start": round(v[min(5, len(v) - 1)][1], 1), "end": round(v[-1][1], 1),
+                             "max": round(max(m for _, m in v), 1)} for name, v in memory.items() if v},
+        "logs": str(work),
+    }
+    Path(args.out).write_text(json.dumps(result, indent=2))
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
