@@ -316,8 +316,13 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                 progress((r + min(nfev / max(cfg.refine_max_nfev, 1), 1.0)) / rounds,
                          {"refine_cost": cost, "nonzero": int(mask.sum()), "round": r})
 
-        result = fitter.fit(coef, mask, train, smallsignal, lambda_jac=1.0 if smallsignal is not None else 0.0,
-                            max_nfev=cfg.refine_max_nfev, on_evaluation=on_evaluation)
+        try:
+            result = fitter.fit(coef, mask, train, smallsignal, lambda_jac=1.0 if smallsignal is not None else 0.0,
+                                max_nfev=cfg.refine_max_nfev, on_evaluation=on_evaluation)
+        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
+            # a refinement that breaks down (a window blowing up) leaves the earlier candidates standing
+            model.metadata.setdefault("refinement_errors", []).append(f"round {r}: {type(err).__name__}: {err}")
+            break
         coef = result.coefficients
         meta = dict(model.metadata)
         meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds, "round": r}

@@ -209,7 +209,7 @@ class TrajectoryFitter:
                 b = blocks[k].reshape(steps, n_win, n)
                 rows.append(r_index.ravel())
                 cols.append((n_c + np.arange(n_win)[None, :, None] * n + k + 0 * r_index).ravel())
-                vals.append(b.ravel())
+                vals.append(np.where(np.isfinite(b), b, 0.0).ravel())
             sparse = scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                                              shape=(dense.shape[0], n_c + n_x))
             dense_full = scipy.sparse.csr_matrix(np.hstack([np.where(np.isfinite(dense), dense, 0.0),
