@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     params.write_text(f"""
 measurement:
   ros__parameters: {{source: sim, scenario: train, snr_db: 40.0, seed: 0, rate: 1.0, loop: true,
-                     wait_for_subscribers: 3, start_delay: 1.0}}
+                     wait_for_subscribers: 2, start_delay: 1.0}}
 identifier:
   ros__parameters: {{method: pisml, min_trajectories: 12, retrain_policy: on_new_data,
                      retrain_min_new_trajectories: 12, output_dir: "{work / 'identifier'}",
@@ -95,13 +95,21 @@ analyser:
             if len(ended) == 12:
                 events["12th_trajectory"] = time.monotonic()
 
+    reports: list = []  # (arrival, model_id): the stages of one run share its model_id
+
     def on_model(msg):
         key = f"model_{msg.stage}"
         events.setdefault(key, time.monotonic())
         events.setdefault(f"{key}_id", msg.model_id)
 
     def on_report(msg):
-        events.setdefault(f"report_{msg.model_id}", time.monotonic())
+        reports.append((time.monotonic(), msg.model_id))
+
+    def report_after(stage):
+        """Seconds from the stage's model to the first report on that model arriving after it."""
+        t_model, model_id = events.get(f"model_{stage}"), events.get(f"model_{stage}_id")
+        later = [t for t, mid in reports if mid == model_id and t_model is not None and t >= t_model]
+        return round(min(later) - t_model, 3) if later else None
 
     node.create_subscription(MeasurementBatch, MEASUREMENT_TOPIC, on_batch, measurement_qos(5000))
     node.create_subscription(IdentifiedModel, MODEL_TOPIC, on_model, latched_qos())
@@ -122,8 +130,7 @@ analyser:
                 next_sample = now + 1.0
             if any(p.poll() is not None for p in procs.values()):
                 raise SystemExit(f"a node exited early; logs in {work}")
-            if link_start and now - link_start >= args.seconds and "model_explicit" in events and \
-                    f"report_{events['model_explicit_id']}" in events:
+            if link_start and now - link_start >= args.seconds and report_after("explicit") is not None:
                 break
     finally:
         for proc in procs.values():
@@ -152,10 +159,7 @@ analyser:
                  "latency_ms": {f"p{q}": round(float(np.percentile(lat, q)), 3) for q in (50, 90, 99, 100)}
                  if lat.size else None},
         "stages_after_12th_trajectory_s": {stage: after(f"model_{stage}") for stage in ("backbone", "hybrid", "explicit")},
-        "report_after_model_s": {stage: (round(events[f"report_{events[f'model_{stage}_id']}"] - events[f"model_{stage}"], 3)
-                                         if f"model_{stage}_id" in events and
-                                         f"report_{events[f'model_{stage}_id']}" in events else None)
-                                 for stage in ("backbone", "explicit")},
+        "report_after_model_s": {stage: report_after(stage) for stage in ("backbone", "explicit")},
         "memory_mb": {name: {"start": round(v[min(5, len(v) - 1)][1], 1), "end": round(v[-1][1], 1),
                              "max": round(max(m for _, m in v), 1)} for name, v in memory.items() if v},
         "logs": str(work),
