@@ -58,7 +58,7 @@ measurement:
                      wait_for_subscribers: 2, start_delay: 1.0}}
 identifier:
   ros__parameters: {{method: pisml, min_trajectories: 12, retrain_policy: on_new_data,
-                     retrain_min_new_trajectories: 12, output_dir: "{work / 'identifier'}",
+                     retrain_min_new_trajectories: 12, max_train_trajectories: 24, output_dir: "{work / 'identifier'}",
                      smallsignal_path: "{BENCH.parent / 'bags' / 'smallsignal_40dB'}"}}
 analyser:
   ros__parameters: {{ug_points: [0.8, 1.0], sweep_points: 0}}
@@ -161,7 +161,13 @@ analyser:
         "stages_after_12th_trajectory_s": {stage: after(f"model_{stage}") for stage in ("backbone", "hybrid", "explicit")},
         "report_after_model_s": {stage: report_after(stage) for stage in ("backbone", "explicit")},
         "memory_mb": {name: {"start": round(v[min(5, len(v) - 1)][1], 1), "end": round(v[-1][1], 1),
-                             "max": round(max(m for _, m in v), 1)} for name, v in memory.items() if v},
+                             "max": round(max(m for _, m in v), 1),
+                             "every_30_s": [round(m, 1) for _, m in v[::30]]} for name, v in memory.items() if v},
+        # the identifier logs every batch it rejects (overlaps, gaps it cannot place): losses on its side
+        "identifier_rejected_batches": sum("rejected" in line for line in
+                                           (work / "identifier.log").read_text(errors="replace").splitlines()),
+        "identifier_runs": [line.split("]: ", 1)[-1] for line in
+                            (work / "identifier.log").read_text(errors="replace").splitlines() if " done in " in line],
         "logs": str(work),
     }
     Path(args.out).write_text(json.dumps(result, indent=2))

@@ -95,6 +95,10 @@ class IdentifierNode(Node):
                              f"{', '.join(RETRAIN_POLICIES)}")
         self.retrain_min_new = declare(self, "retrain_min_new_trajectories", 4,
                                        "on_new_data: new complete trajectories that trigger a retraining", 1, 10000)
+        # training cost and memory grow with the data: a long-running stream trains on its newest records
+        self.max_train = declare(self, "max_train_trajectories", 48,
+                                 "automatic training uses at most this many of the newest complete trajectories",
+                                 1, 100000)
         self.output_dir = declare(self, "output_dir", "out/identifier",
                                   "where explicit models and history.json are saved, atomically (empty = nowhere)")
         config_file = declare(self, "config_file", "", "identification settings YAML/JSON (empty = defaults)")
@@ -170,6 +174,8 @@ class IdentifierNode(Node):
                 return
             self.trained_at = self.buffer.next_uid
             data = self.buffer.dataset()
+            if len(data) > self.max_train:
+                data = data.select([tr.traj_id for tr in data.trajectories[-self.max_train:]])
             self._start_job(self.method, self.config, data, f"buffer ({len(data)} trajectories, automatic)")
 
     # ------------------------------------------------------------------ the worker
