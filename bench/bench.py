@@ -214,24 +214,18 @@ def main(argv=None) -> int:
             plot_spectra(figure_spectra, fig_dir / f"spectra_{plant_name}_{noise.replace(' ', '')}.png",
                          title=f"eigenvalues at ug 0.8 ({plant_name}, {noise})")
     if not args.quick and "pisml" in methods:
-        for n_traj in (6,):
-            plant, train, small, test = datasets({}, 40.0, n_traj=n_traj)
+        # (sweep key, value, dataset arguments): error vs number of trajectories, then vs SNR
+        for key, value, kwargs in [("n_traj", 6, {"snr": 40.0, "n_traj": 6}),
+                                   ("snr", 20.0, {"snr": 20.0}), ("snr", 60.0, {"snr": 60.0})]:
+            plant, train, small, test = datasets({}, **kwargs)
             truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
             row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant, UG_GRID), truth, config,
-                             f"n_traj {n_traj}")
-            row.update(sweep="n_traj", n_traj=n_traj)
+                             f"{key} {value:g}")
+            row.update(sweep=key, **{key: value})
             runs.append(row)
             save(args, runs, started, config)
-            print(f"n_traj {n_traj}: IOD {fmt(row.get('iod'))} OOD {fmt(row.get('ood'))} {row['seconds']:.1f} s", flush=True)
-        for snr in (20.0, 60.0):
-            plant, train, small, test = datasets({}, snr)
-            truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
-            row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant, UG_GRID), truth, config,
-                             f"snr {snr}")
-            row.update(sweep="snr", snr=snr)
-            runs.append(row)
-            save(args, runs, started, config)
-            print(f"snr {snr:g}: IOD {fmt(row.get('iod'))} OOD {fmt(row.get('ood'))} {row['seconds']:.1f} s", flush=True)
+            print(f"{key} {value:g}: IOD {fmt(row.get('iod'))} OOD {fmt(row.get('ood'))} {row['seconds']:.1f} s",
+                  flush=True)
     save(args, runs, started, config, final=True)
     return 0
 

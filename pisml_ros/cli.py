@@ -264,7 +264,7 @@ def cmd_effects(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from .demo import run_demo
+    from .ros.demo import run_demo
 
     if not args.timeout > 0:
         raise UserError(f"--timeout must be > 0 s, got {args.timeout}")

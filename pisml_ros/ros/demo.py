@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 NODES = ("analyser", "identifier", "measurement")
 UG_POINTS = [0.4, 0.8, 1.0, 1.2]
 
@@ -50,10 +50,10 @@ def _bags(out: Path, say) -> dict:
     found = {key: _find(f"bags/{name}") for key, name in names.items()}
     if all(found.values()):
         return found
-    from .data import write_bag
-    from .plant import InverterPlant
-    from .plant.noise import add_measurement_noise
-    from .plant.scenarios import generate, schedules_for
+    from ..data import write_bag
+    from ..plant import InverterPlant
+    from ..plant.noise import add_measurement_noise
+    from ..plant.scenarios import generate, schedules_for
 
     say("bundled recordings not found: simulating them with the virtual HIL")
     for key, snr in (("train", 40.0), ("smallsignal", 40.0), ("test", None)):
@@ -110,7 +110,7 @@ class Graph:
         from pisml_msgs.msg import IdentifiedModel, StabilityReport
         from std_msgs.msg import String
 
-        from .ros.common import latched_qos
+        from .common import latched_qos
 
         rclpy.init(args=[sys.argv[0]])
         self.node = rclpy.create_node("pisml_demo")
@@ -183,7 +183,7 @@ def _progress_line(values: dict) -> str:
 
 def _watch(graph: Graph, ug_points, timeout: float, say):
     """Wait for the final model and its reports at every operating point (and its root locus)."""
-    from .ros.conversions import message_metrics
+    from .conversions import message_metrics
 
     deadline = time.monotonic() + timeout
     seen_models, last_line, last_stage, last_time, announced = set(), "", None, 0.0, False
@@ -228,8 +228,8 @@ def _watch(graph: Graph, ug_points, timeout: float, say):
 
 
 def _plant_part(plant):
-    from .analysis.margins import stability_boundaries
-    from .analysis.operating_point import max_real_part, operating_point_report
+    from ..analysis.margins import stability_boundaries
+    from ..analysis.operating_point import max_real_part, operating_point_report
 
     reports = {f"{ug:g}": operating_point_report(plant, ug) for ug in (0.2, 0.4, 0.8, 1.0, 1.2)}
     grid = np.round(np.arange(0.2, 1.3001, 0.05), 3)
@@ -253,7 +253,7 @@ def _clean(obj):
 
 
 def run_demo(out: Path, quiet: bool = False, method: str | None = None, timeout: float = 600.0) -> int:
-    from .ros.dds_env import configure_loopback_dds
+    from .dds_env import configure_loopback_dds
 
     started = time.monotonic()
 
@@ -290,12 +290,12 @@ def run_demo(out: Path, quiet: bool = False, method: str | None = None, timeout:
 
 
 def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool) -> int:
-    from .analysis.metrics import protocol_errors, spectrum_wasserstein
-    from .data import read_dataset
-    from .plant import InverterPlant
-    from .report.figures import plot_spectra, plot_stability_scan, plot_trajectories
-    from .report.identification import plot_coefficients, plot_model_vs_data, plot_training_curves
-    from .ros.conversions import message_metrics, model_from_message, stability_dict
+    from ..analysis.metrics import protocol_errors, spectrum_wasserstein
+    from ..data import read_dataset
+    from ..plant import InverterPlant
+    from ..report.figures import plot_spectra, plot_stability_scan, plot_trajectories
+    from ..report.identification import plot_coefficients, plot_model_vs_data, plot_training_curves
+    from .conversions import message_metrics, model_from_message, stability_dict
 
     show = (lambda text: None) if quiet else (lambda text: print(text, flush=True))
     plant = InverterPlant()
