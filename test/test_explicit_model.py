@@ -110,3 +110,29 @@ def test_trajectory_refinement_recovers_perturbed_coefficients(truth):
         return max(np.linalg.norm(a.x - b.x) / np.linalg.norm(b.x) for a, b in zip(pred, data))
 
     assert error(result.coefficients) < 0.1 * error(start)
+
+
+@pytest.mark.slow
+def test_refinement_exact_and_iterative_steps_agree(truth):
+    """The dense exact trust-region step (default at these sizes) and LSMR reach the same fit."""
+    from pisml_ros.ident.trajfit import TrajectoryFitter
+
+    model, plant = truth
+    schedules, _ = schedules_for("train", seed=4, n_traj=2)
+    data = generate(plant, schedules, 0.006)
+    rng = np.random.default_rng(2)
+    mask = model.coefficients != 0
+    start = model.coefficients * (1 + 0.01 * rng.standard_normal(model.coefficients.shape))
+    rms = np.sqrt(np.mean(np.concatenate([tr.x for tr in data]) ** 2, axis=0))
+    results = {}
+    for name, limit in (("exact", TrajectoryFitter.exact_limit), ("lsmr", 0)):
+        fitter = TrajectoryFitter(model._terms, 13, data.dt, window=10, substeps=2, weights=1 / (1e-4 * rms))
+        fitter.exact_limit = limit
+        results[name] = fitter.fit(start, mask, data, lambda_jac=0.0, max_nfev=4)
+
+    def error(coef):
+        pred = ExplicitModel(STATE_NAMES, INPUT_NAMES, model.terms, coef).simulate(data)
+        return max(np.linalg.norm(a.x - b.x) / np.linalg.norm(b.x) for a, b in zip(pred, data))
+
+    assert error(results["exact"].coefficients) < 0.2 * error(start)
+    assert error(results["exact"].coefficients) < 2 * error(results["lsmr"].coefficients) + 1e-9

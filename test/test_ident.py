@@ -8,7 +8,7 @@ import pytest
 
 from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum_wasserstein
 from pisml_ros.data import read_dataset, write_dataset
-from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, make_estimator
+from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
 from pisml_ros.ident.backbone import fit_backbone
 from pisml_ros.ident.library import physics_library
 from pisml_ros.model import ExplicitModel
@@ -57,9 +57,27 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.load(path)
 
 
+def test_physics_library_follows_the_roles():
+    roles = IdentConfig().roles
+    terms = physics_library(roles, ("delta", "Pf", "Qf", "phi_d", "phi_q", "gamma_d", "gamma_q", "il_d", "il_q",
+                                    "vc_d", "vc_q", "ig_d", "ig_q"))
+    # rotating-frame couplings: the frequency state times every dq voltage and current
+    assert {"Pf*vc_d", "Pf*vc_q", "Pf*ig_d", "Pf*ig_q", "Pf*il_d", "Pf*il_q"} <= set(terms)
+    assert "vc_d*ig_d + vc_q*ig_q" in terms and "ug*sin(theta_g - delta)" in terms
+    other = SignalRoles.from_mapping({"frequency": "w_pll", "voltage": ["v_a", "v_b"], "current": ["i_a", "i_b"],
+                                      "other_currents": []})
+    assert [t for t in physics_library(other, ("w_pll", "v_a")) if t.startswith("w_pll*")] == [
+        "w_pll*v_a", "w_pll*v_b", "w_pll*i_a", "w_pll*i_b"]
+    no_coupling = SignalRoles.from_mapping({"frequency": None})
+    assert not any(t.startswith("Pf*") for t in physics_library(no_coupling, ("Pf", "vc_d")))
+    with pytest.raises(ValueError, match="w_pll"):
+        other.check(["v_a", "v_b", "i_a", "i_b"], ["ug", "theta_g"])
+
+
 def test_backbone_is_fast_sparse_and_close(train, test_set):
-    model = fit_backbone(train, physics_library(IdentConfig().roles, train.state_names), threshold=0.02)
-    assert model.n_parameters < 18 * 13
+    terms = physics_library(IdentConfig().roles, train.state_names)
+    model = fit_backbone(train, terms, threshold=0.02)
+    assert model.n_parameters < len(terms) * 13
     errs = protocol_errors(model, test_set)
     # Θ cannot hold the vo = vc + Rd(il - ig) products, and 4 short records are little data:
     # a few per cent, not more
@@ -86,6 +104,10 @@ def test_pisml_pipeline_stages_and_model(train, small, test_set):
     assert progress == sorted(progress) and progress[-1] == 1.0
     model = est.explicit_model_
     assert isinstance(model, ExplicitModel) and model.metadata["stage"] == "explicit"
+    # hybrid training moves Ξ on the backbone's support and never re-opens the zeros STLSQ left
+    trained = est.candidates_["trained backbone"].coefficients
+    assert np.array_equal(trained != 0, est.backbone_.coefficients != 0)
+    assert not np.allclose(trained, est.backbone_.coefficients)
     assert est.hybrid_.n_parameters > 10 * model.n_parameters
     # the merged model uses products that Θ alone does not have
     assert any("*" in t and "+" not in t and "cos" not in t for t in model.terms)

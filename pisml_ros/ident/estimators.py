@@ -194,7 +194,7 @@ class PISML(_Estimator):
         field = _train_field(self, train, smallsignal, backbone=backbone,
                              lambda_pert=cfg.lambda_pert if self.use_jacobian else 0.0)
         trained_backbone = ExplicitModel(train.state_names, train.input_names, theta_terms,
-                                         field.xi.detach().numpy().copy(), dict(backbone.metadata))
+                                         field.coefficients().detach().numpy().copy(), dict(backbone.metadata))
         hybrid = NeuralModel(field, train.state_names, train.input_names, reference_points(train),
                              backbone=trained_backbone, kind="hybrid")
         self.hybrid_ = hybrid

@@ -1,7 +1,8 @@
 """Candidate-term libraries, as term strings (the term names of the explicit model JSON).
 
 - :func:`physics_library` Θ(x, u): constant, states, p and q from the voltage/current
-  pair, grid terms ug·cos(θg − δ) and ug·sin(θg − δ).
+  pair, grid terms ug·cos(θg − δ) and ug·sin(θg − δ), and the rotating-frame couplings
+  (frequency state × each dq signal: the paper's bilinear ``x_k·ΔP`` terms).
 - :func:`extended_library` Θ_ext for distillation: monomials of degree 2 (optionally 3)
   over the power, voltage and current signals (bilinear current×current and
   voltage×current products included), trigonometric terms of the angle, and
@@ -32,16 +33,28 @@ def power_terms(roles: SignalRoles) -> list[str]:
     return [f"{vd}*{idd} + {vq}*{iq}", f"{vq}*{idd} - {vd}*{iq}"]
 
 
-def physics_library(roles: SignalRoles, states: Sequence[str], integral_states: bool = True) -> list[str]:
-    """Θ(x, u): ``1``, the states, p, q, and the grid terms.
+def coupling_terms(roles: SignalRoles) -> list[str]:
+    """``frequency * s`` for every dq signal s: in a frame that rotates at w (affine in the
+    frequency state), the cross-coupling j·w·L·i and j·w·C·v of each dq pair is such a product."""
+    if not roles.frequency:
+        return []
+    return [f"{roles.frequency}*{s}" for s in roles.dq_signals() if s != roles.frequency]
+
+
+def physics_library(roles: SignalRoles, states: Sequence[str], integral_states: bool = True,
+                    coupling: bool = True) -> list[str]:
+    """Θ(x, u): ``1``, the states, p, q, the grid terms and the rotating-frame couplings.
 
     Parameters
     ----------
     integral_states : bool
         Include the controller integrator states (the paper's optional integral states).
+    coupling : bool
+        Include the frequency × dq-signal products (:func:`coupling_terms`).
     """
     skip = set() if integral_states else set(roles.integrators)
-    return ["1", *[s for s in states if s not in skip], *power_terms(roles), *grid_terms(roles)]
+    return ["1", *[s for s in states if s not in skip], *power_terms(roles), *grid_terms(roles),
+            *(coupling_terms(roles) if coupling else [])]
 
 
 def extended_library(roles: SignalRoles, states: Sequence[str], degree: int = 2, trig: bool = True,

@@ -75,6 +75,9 @@ def build_modules():
             if self.terms is not None:
                 xi = torch.as_tensor(np.zeros((len(terms), n_states)) if xi0 is None else xi0)
                 self.xi = nn.Parameter(xi.clone(), requires_grad=train_xi)
+                # the sparse backbone's support is its structure: training moves the values on it,
+                # never re-opens the entries STLSQ set to zero
+                self.register_buffer("xi_mask", (xi != 0).to(xi.dtype) if xi0 is not None else torch.ones_like(xi))
             else:
                 self.xi = None
             self.u_seq = None  # (batch, n_samples, n_inputs) of the windows being integrated
@@ -84,10 +87,14 @@ def build_modules():
             z = torch.cat([x, u], dim=-1)
             out = 0.0
             if self.terms is not None:
-                out = self.terms.evaluate_torch(z) @ self.xi
+                out = self.terms.evaluate_torch(z) @ self.coefficients()
             if self.mlp is not None:
                 out = out + self.mlp(z)
             return out
+
+        def coefficients(self):
+            """Ξ on its support (the backbone's nonzero pattern)."""
+            return self.xi * self.xi_mask
 
         def forward(self, t, x):
             k = int(min(max(float(t) / self.dt + 1e-6, 0.0), self.u_seq.shape[1] - 2))
@@ -201,7 +208,7 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
             loss = loss + lambda_pert * jac_loss
         sparse = torch.zeros(())
         if lambda_sparse > 0 and xi_scale is not None:
-            sparse = torch.sum(torch.abs(field.xi) * xi_scale)
+            sparse = torch.sum(torch.abs(field.coefficients()) * xi_scale)
             loss = loss + lambda_sparse * sparse
         opt.zero_grad()
         loss.backward()
@@ -252,7 +259,7 @@ class NeuralModel:
         if self.field.mlp is not None:
             n += sum(p.numel() for p in self.field.mlp.parameters())
         if self.field.xi is not None:
-            n += int(np.count_nonzero(self.field.xi.detach().numpy()))
+            n += int(np.count_nonzero(self.field.coefficients().detach().numpy()))
         return n
 
     def vector_field(self, x, u) -> np.ndarray:

@@ -33,6 +33,10 @@ class SignalRoles:
         Filtered-power (droop) states.
     integrators : tuple of str
         Controller integrator states.
+    frequency : str or None
+        The state the dq frame's frequency follows (the droop power state of a grid-forming
+        inverter, a PLL frequency state otherwise): rotating-frame cross-coupling makes each dq
+        signal's derivative carry ``frequency * <other axis>`` products. None: no such terms.
     """
 
     angle: str | None = "delta"
@@ -43,6 +47,7 @@ class SignalRoles:
     other_currents: tuple = (("il_d", "il_q"),)
     power: tuple = ("Pf", "Qf")
     integrators: tuple = ("phi_d", "phi_q", "gamma_d", "gamma_q")
+    frequency: str | None = "Pf"
 
     @classmethod
     def from_mapping(cls, values: Mapping) -> "SignalRoles":
@@ -65,7 +70,7 @@ class SignalRoles:
         """Raise RoleError naming any role signal the data lacks."""
         names = set(states) | set(inputs)
         wanted = [self.angle, self.grid_magnitude, self.grid_phase, *self.voltage, *self.current,
-                  *(s for pair in self.other_currents for s in pair), *self.power, *self.integrators]
+                  *(s for pair in self.other_currents for s in pair), *self.power, *self.integrators, self.frequency]
         missing = [w for w in wanted if w is not None and w not in names]
         if missing:
             raise RoleError(f"roles name signals the data does not have: {missing} (signals: {sorted(names)})")
@@ -75,7 +80,11 @@ class SignalRoles:
 
     def electrical(self) -> list[str]:
         """Power states and all dq voltage/current signals (the factors of the product terms)."""
-        out = list(self.power) + list(self.voltage) + list(self.current)
+        return list(dict.fromkeys([*self.power, *self.dq_signals()]))
+
+    def dq_signals(self) -> list[str]:
+        """All dq voltage and current signals (the voltage pair, the current pair, other currents)."""
+        out = list(self.voltage) + list(self.current)
         for pair in self.other_currents:
             out += list(pair)
         return list(dict.fromkeys(out))

@@ -58,7 +58,11 @@ class TrajectoryFitter:
         RK4 steps per sample.
     weights : ndarray, shape (n_states,)
         Residual weight per state (1/noise std).
+    exact_limit : int
+        Largest dense Jacobian (rows × parameters) solved exactly (SVD); larger ones use LSMR.
     """
+
+    exact_limit = 40_000_000
 
     def __init__(self, terms: TermSet, n_states: int, dt: float, window: int = 50, substeps: int = 2,
                  weights=None, max_windows: int | None = None):
@@ -214,11 +218,17 @@ class TrajectoryFitter:
                                              shape=(dense.shape[0], n_c + n_x))
             dense_full = scipy.sparse.csr_matrix(np.hstack([np.where(np.isfinite(dense), dense, 0.0),
                                                             np.zeros((dense.shape[0], n_x))]))
-            return dense_full + sparse
+            full = dense_full + sparse
+            return full.toarray() if exact else full
 
         theta0 = np.concatenate([coef0.ravel()[idx] / scale, np.zeros(n_x)])
+        with torch.no_grad():
+            n_rows = int(all_residuals(torch.tensor(theta0)).numel())
+        # an exact (SVD) trust-region step on the dense Jacobian costs well under a second at these
+        # sizes, where LSMR on the sparse one needed thousands of products per step (~7 s)
+        exact = n_rows * (n_c + n_x) <= self.exact_limit
         result = scipy.optimize.least_squares(fun, theta0, jac=jac, method="trf", x_scale="jac", max_nfev=max_nfev,
-                                              tr_solver="lsmr")
+                                              tr_solver="exact" if exact else "lsmr")
         coef = np.zeros(coef0.size)
         coef[idx] = result.x[:n_c] * scale
         # standard errors from the Gauss-Newton approximation, for pruning
