@@ -49,8 +49,8 @@ class IdentConfig:
     # fine-tuning of the merged explicit model
     refine: bool = True
     refine_window: int = 20
-    refine_max_windows: int = 30
-    refine_max_nfev: int = 5
+    refine_max_windows: int = 40
+    refine_max_nfev: int = 10
     refine_prune_t: float = 2.0
     refine_rounds: int = 1
 

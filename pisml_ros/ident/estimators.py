@@ -326,9 +326,15 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         coef = result.coefficients
         meta = dict(model.metadata)
         meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds, "round": r}
-        out["refined" if r == 0 else f"pruned {r}"] = ExplicitModel(model.state_names, model.input_names,
-                                                                    model.terms, coef.copy(), meta)
+        candidate = ExplicitModel(model.state_names, model.input_names, model.terms, coef.copy(), meta)
+        out["refined" if r == 0 else f"pruned {r}"] = candidate
         if r == rounds - 1 or cfg.refine_prune_t <= 0:
+            break
+        if r == 0 and training_error(candidate, train) > training_error(model, train):
+            # refinement from this start went astray (noisy data, far-off fast modes): pruning its
+            # t-values would only compound that, and costs as much again
+            model.metadata.setdefault("refinement_errors", []).append(
+                "round 0 did not improve the training error; pruning skipped")
             break
         weak = mask & ~(result.t_values >= cfg.refine_prune_t)
         if not weak.any():
