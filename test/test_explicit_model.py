@@ -96,20 +96,26 @@ def test_trajectory_refinement_recovers_perturbed_coefficients(truth):
     from pisml_ros.ident.trajfit import TrajectoryFitter
 
     model, plant = truth
-    schedules, _ = schedules_for("train", seed=2, n_traj=2)
-    data = generate(plant, schedules, 0.01)
-    rng = np.random.default_rng(1)
-    mask = model.coefficients != 0
-    start = model.coefficients * (1 + 0.02 * rng.standard_normal(model.coefficients.shape))
+    data, start, weights = _perturbed_problem(model, plant, seed=2, duration=0.01, spread=0.02, rng_seed=1)
+    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=20, substeps=2, weights=weights)
+    result = fitter.fit(start, model.coefficients != 0, data, lambda_jac=0.0, max_nfev=6)
+    assert _replay_error(model, result.coefficients, data) < 0.1 * _replay_error(model, start, data)
+
+
+def _perturbed_problem(model, plant, seed, duration, spread, rng_seed):
+    """Two clean training records, the true coefficients perturbed by ``spread``, and residual weights."""
+    schedules, _ = schedules_for("train", seed=seed, n_traj=2)
+    data = generate(plant, schedules, duration)
+    rng = np.random.default_rng(rng_seed)
+    start = model.coefficients * (1 + spread * rng.standard_normal(model.coefficients.shape))
     rms = np.sqrt(np.mean(np.concatenate([tr.x for tr in data]) ** 2, axis=0))
-    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=20, substeps=2, weights=1 / (1e-4 * rms))
-    result = fitter.fit(start, mask, data, lambda_jac=0.0, max_nfev=6)
+    return data, start, 1 / (1e-4 * rms)
 
-    def error(coef):
-        pred = ExplicitModel(STATE_NAMES, INPUT_NAMES, model.terms, coef).simulate(data)
-        return max(np.linalg.norm(a.x - b.x) / np.linalg.norm(b.x) for a, b in zip(pred, data))
 
-    assert error(result.coefficients) < 0.1 * error(start)
+def _replay_error(model, coef, data):
+    """Worst relative error of the model with ``coef`` replaying ``data`` from its first samples."""
+    pred = ExplicitModel(STATE_NAMES, INPUT_NAMES, model.terms, coef).simulate(data)
+    return max(np.linalg.norm(a.x - b.x) / np.linalg.norm(b.x) for a, b in zip(pred, data))
 
 
 @pytest.mark.slow
@@ -118,21 +124,13 @@ def test_refinement_exact_and_iterative_steps_agree(truth):
     from pisml_ros.ident.trajfit import TrajectoryFitter
 
     model, plant = truth
-    schedules, _ = schedules_for("train", seed=4, n_traj=2)
-    data = generate(plant, schedules, 0.006)
-    rng = np.random.default_rng(2)
+    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.006, spread=0.01, rng_seed=2)
     mask = model.coefficients != 0
-    start = model.coefficients * (1 + 0.01 * rng.standard_normal(model.coefficients.shape))
-    rms = np.sqrt(np.mean(np.concatenate([tr.x for tr in data]) ** 2, axis=0))
     results = {}
     for name, limit in (("exact", TrajectoryFitter.exact_limit), ("lsmr", 0)):
-        fitter = TrajectoryFitter(model._terms, 13, data.dt, window=10, substeps=2, weights=1 / (1e-4 * rms))
+        fitter = TrajectoryFitter(model._terms, 13, data.dt, window=10, substeps=2, weights=weights)
         fitter.exact_limit = limit
         results[name] = fitter.fit(start, mask, data, lambda_jac=0.0, max_nfev=4)
-
-    def error(coef):
-        pred = ExplicitModel(STATE_NAMES, INPUT_NAMES, model.terms, coef).simulate(data)
-        return max(np.linalg.norm(a.x - b.x) / np.linalg.norm(b.x) for a, b in zip(pred, data))
-
-    assert error(results["exact"].coefficients) < 0.2 * error(start)
-    assert error(results["exact"].coefficients) < 2 * error(results["lsmr"].coefficients) + 1e-9
+    exact = _replay_error(model, results["exact"].coefficients, data)
+    assert exact < 0.2 * _replay_error(model, start, data)
+    assert exact < 2 * _replay_error(model, results["lsmr"].coefficients, data) + 1e-9

@@ -69,8 +69,8 @@ class SignalRoles:
     def check(self, states: Sequence[str], inputs: Sequence[str]) -> None:
         """Raise RoleError naming any role signal the data lacks."""
         names = set(states) | set(inputs)
-        wanted = [self.angle, self.grid_magnitude, self.grid_phase, *self.voltage, *self.current,
-                  *(s for pair in self.other_currents for s in pair), *self.power, *self.integrators, self.frequency]
+        wanted = [self.angle, self.grid_magnitude, self.grid_phase, *self.dq_signals(), *self.power,
+                  *self.integrators, self.frequency]
         missing = [w for w in wanted if w is not None and w not in names]
         if missing:
             raise RoleError(f"roles name signals the data does not have: {missing} (signals: {sorted(names)})")
