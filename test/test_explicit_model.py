@@ -120,16 +120,16 @@ def _replay_error(model, coef, data):
 
 @pytest.mark.slow
 def test_refinement_exact_and_iterative_steps_agree(truth):
-    """The dense exact trust-region step (default at these sizes) and LSMR reach the same fit."""
+    """The dense exact trust-region step (the default at the benchmark's sizes) and LSMR reach the same fit."""
     from pisml_ros.ident.trajfit import TrajectoryFitter
 
     model, plant = truth
     data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.006, spread=0.01, rng_seed=2)
     mask = model.coefficients != 0
     results = {}
-    for name, limit in (("exact", TrajectoryFitter.exact_limit), ("lsmr", 0)):
+    for name, sizes in (("exact", (0, TrajectoryFitter.exact_range[1])), ("lsmr", (0, 0))):
         fitter = TrajectoryFitter(model._terms, 13, data.dt, window=10, substeps=2, weights=weights)
-        fitter.exact_limit = limit
+        fitter.exact_range = sizes
         results[name] = fitter.fit(start, mask, data, lambda_jac=0.0, max_nfev=4)
     exact = _replay_error(model, results["exact"].coefficients, data)
     assert exact < 0.2 * _replay_error(model, start, data)

@@ -58,11 +58,15 @@ class TrajectoryFitter:
         RK4 steps per sample.
     weights : ndarray, shape (n_states,)
         Residual weight per state (1/noise std).
-    exact_limit : int
-        Largest dense Jacobian (rows × parameters) solved exactly (SVD); larger ones use LSMR.
+    exact_range : (int, int)
+        Dense Jacobian sizes (rows × parameters) whose trust-region steps are solved exactly (SVD);
+        others use LSMR.
     """
 
-    exact_limit = 40_000_000
+    # Below ~2e6 entries LSMR is cheap and its regularised inexact steps converge at least as fast
+    # on collinear coefficients; above it LSMR needed thousands of products per step (~7 s at the
+    # benchmark's 2e7) where the exact step takes well under a second; above 4e7 memory decides.
+    exact_range = (2_000_000, 40_000_000)
 
     def __init__(self, terms: TermSet, n_states: int, dt: float, window: int = 50, substeps: int = 2,
                  weights=None, max_windows: int | None = None):
@@ -224,9 +228,7 @@ class TrajectoryFitter:
         theta0 = np.concatenate([coef0.ravel()[idx] / scale, np.zeros(n_x)])
         with torch.no_grad():
             n_rows = int(all_residuals(torch.tensor(theta0)).numel())
-        # an exact (SVD) trust-region step on the dense Jacobian costs well under a second at these
-        # sizes, where LSMR on the sparse one needed thousands of products per step (~7 s)
-        exact = n_rows * (n_c + n_x) <= self.exact_limit
+        exact = self.exact_range[0] <= n_rows * (n_c + n_x) <= self.exact_range[1]
         result = scipy.optimize.least_squares(fun, theta0, jac=jac, method="trf", x_scale="jac", max_nfev=max_nfev,
                                               tr_solver="exact" if exact else "lsmr")
         coef = np.zeros(coef0.size)
