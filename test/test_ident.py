@@ -58,7 +58,7 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
 
 
 def test_physics_library_follows_the_roles():
-    roles = IdentConfig().roles
+    roles = SignalRoles.from_mapping({"frequency": "Pf"})
     terms = physics_library(roles, ("delta", "Pf", "Qf", "phi_d", "phi_q", "gamma_d", "gamma_q", "il_d", "il_q",
                                     "vc_d", "vc_q", "ig_d", "ig_q"))
     # rotating-frame couplings: the frequency state times every dq voltage and current

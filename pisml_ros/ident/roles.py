@@ -47,7 +47,7 @@ class SignalRoles:
     other_currents: tuple = (("il_d", "il_q"),)
     power: tuple = ("Pf", "Qf")
     integrators: tuple = ("phi_d", "phi_q", "gamma_d", "gamma_q")
-    frequency: str | None = "Pf"
+    frequency: str | None = None
 
     @classmethod
     def from_mapping(cls, values: Mapping) -> "SignalRoles":
