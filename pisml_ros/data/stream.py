@@ -83,8 +83,10 @@ class TrajectoryBuffer:
         return event
 
     def _close(self, current: _Open) -> Trajectory:
-        t = np.concatenate([t0 + np.arange(x.shape[0]) * self.dt for t0, x, _ in current.parts])
         x = np.concatenate([x for _, x, _ in current.parts])
+        # the parts are contiguous in sample index: one grid from the first t0, as the recorder's
+        # own k·dt (per-batch t0 + j·dt differs from it in the last bit at every batch boundary)
+        t = current.parts[0][0] + np.arange(x.shape[0]) * self.dt
         u = np.concatenate([u for _, _, u in current.parts])
         traj = Trajectory(self.next_uid, t, x, u)
         self.next_uid += 1
