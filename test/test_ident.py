@@ -10,7 +10,7 @@ from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum
 from pisml_ros.data import read_dataset, write_dataset
 from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
 from pisml_ros.ident.backbone import fit_backbone
-from pisml_ros.ident.library import physics_library
+from pisml_ros.ident.library import coupling_separation, physics_library
 from pisml_ros.model import ExplicitModel
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
@@ -87,6 +87,26 @@ def test_backbone_is_fast_sparse_and_close(train, test_set):
                          threshold=0.02)
     errs = protocol_errors(plain, test_set)
     assert errs["iod"] < 10 and errs["ood"] < 10
+
+
+def test_couplings_are_kept_only_where_the_data_separate_them(plant, train):
+    roles = IdentConfig().roles
+    assert roles.frequency == "Pf"
+    x_small = np.concatenate([tr.x for tr in train])
+    # 4 records of 20 ms: Pf hardly leaves P*, so Pf*s is nearly an affine function of s
+    assert coupling_separation(x_small, train.state_names, roles) < IdentConfig().coupling_min_separation
+    protocol = generate(plant, *schedules_for("train", seed=0))
+    x_big = np.concatenate([tr.x for tr in protocol])
+    assert coupling_separation(x_big, protocol.state_names, roles) > 0.3
+    assert coupling_separation(x_big, protocol.state_names, SignalRoles.from_mapping({"frequency": None})) == 0.0
+    # the estimator records its decision and builds Θ accordingly
+    est = make_estimator("pisml", IdentConfig.from_mapping({**FAST, "refine": False})).fit(train)
+    assert est.metrics_["frequency_couplings"] == 0.0
+    assert not any(t.startswith("Pf*") for t in est.backbone_.terms)
+    assert est.backbone_.metadata["frequency_couplings"]["used"] is False
+    forced = IdentConfig.from_mapping({**FAST, "refine": False, "coupling_min_separation": 0.0})
+    est = make_estimator("pisml", forced).fit(train)
+    assert any(t.startswith("Pf*") for t in est.backbone_.terms)
 
 
 @pytest.mark.parametrize("method", ["mod-sindy", "std-sindy"])

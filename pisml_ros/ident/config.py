@@ -27,6 +27,9 @@ class IdentConfig:
     backbone_span: int = 10
     backbone_threshold: float = 0.02
     backbone_alpha: float = 1e-6
+    # the rotating-frame couplings (roles.frequency × dq signals) stay in Θ only when the data
+    # separate them from the plain signals at least this well (library.coupling_separation)
+    coupling_min_separation: float = 0.25
     # neural residual N(x, u) and hybrid training
     hidden: tuple = (128, 128)
     dropout: float = 0.0
@@ -111,7 +114,7 @@ class IdentConfig:
         for key in positive:
             if getattr(self, key) <= 0:
                 raise ConfigError(f"identification config: {key} must be > 0, got {getattr(self, key)}")
-        for key in ["backbone_threshold", "backbone_alpha", "dropout", "lambda_pert", "lambda_sparse",
+        for key in ["backbone_threshold", "backbone_alpha", "coupling_min_separation", "dropout", "lambda_pert", "lambda_sparse",
                     "distill_threshold", "distill_spread", "refine_max_nfev", "refine_prune_t", "refine_rounds"]:
             if getattr(self, key) < 0:
                 raise ConfigError(f"identification config: {key} must be >= 0, got {getattr(self, key)}")

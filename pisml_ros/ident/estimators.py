@@ -23,7 +23,7 @@ from ..model import ExplicitModel
 from ..model.expressions import term_set
 from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
-from .library import extended_library, physics_library
+from .library import coupling_separation, extended_library, physics_library
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
 
@@ -93,7 +93,8 @@ class ModSINDy(_Estimator):
         from .derivatives import finite_difference_derivatives
 
         self._start(train, callback, should_stop)
-        terms = physics_library(self.config.roles, train.state_names)
+        # the paper's physics library: no rotating-frame couplings
+        terms = physics_library(self.config.roles, train.state_names, coupling=False)
         ts = term_set(terms, tuple(train.state_names) + tuple(train.input_names))
         theta = np.concatenate([ts.evaluate(np.concatenate([tr.x, tr.u], 1)) for tr in train])
         xdot = np.concatenate(finite_difference_derivatives(train))
@@ -181,11 +182,17 @@ class PISML(_Estimator):
         signals = list(train.state_names) + list(train.input_names)
         # 1. backbone
         started = time.monotonic()
-        theta_terms = physics_library(cfg.roles, train.state_names)
+        separation = coupling_separation(np.concatenate([tr.x for tr in train]), train.state_names, cfg.roles)
+        coupling = bool(cfg.roles.frequency) and separation >= cfg.coupling_min_separation
+        self.metrics_["coupling_separation"] = separation
+        self.metrics_["frequency_couplings"] = float(coupling)
+        theta_terms = physics_library(cfg.roles, train.state_names, coupling=coupling)
         backbone = fit_backbone(train, theta_terms, span=cfg.backbone_span, threshold=cfg.backbone_threshold,
                                 alpha=cfg.backbone_alpha)
         backbone.metadata.update(_meta(self.method, cfg, train, smallsignal))
         backbone.metadata["stage"] = "backbone"
+        backbone.metadata["frequency_couplings"] = {"used": coupling, "separation": round(separation, 4),
+                                                    "min_separation": cfg.coupling_min_separation}
         self.backbone_ = backbone
         self.metrics_["backbone_seconds"] = time.monotonic() - started
         self._emit("backbone", 0.05, model=backbone)

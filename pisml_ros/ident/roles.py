@@ -37,6 +37,8 @@ class SignalRoles:
         The state the dq frame's frequency follows (the droop power state of a grid-forming
         inverter, a PLL frequency state otherwise): rotating-frame cross-coupling makes each dq
         signal's derivative carry ``frequency * <other axis>`` products. None: no such terms.
+        Kept only where the data tell them apart from the plain signals
+        (``IdentConfig.coupling_min_separation``).
     """
 
     angle: str | None = "delta"
@@ -47,7 +49,7 @@ class SignalRoles:
     other_currents: tuple = (("il_d", "il_q"),)
     power: tuple = ("Pf", "Qf")
     integrators: tuple = ("phi_d", "phi_q", "gamma_d", "gamma_q")
-    frequency: str | None = None
+    frequency: str | None = "Pf"
 
     @classmethod
     def from_mapping(cls, values: Mapping) -> "SignalRoles":
