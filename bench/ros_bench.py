@@ -48,6 +48,7 @@ def main(argv=None) -> int:
     import rclpy
     from pisml_msgs.msg import IdentifiedModel, MeasurementBatch, StabilityReport
 
+    from pisml_ros.ros.conversions import message_metrics
     from pisml_ros.ros.common import MEASUREMENT_TOPIC, MODEL_TOPIC, latched_qos, measurement_qos
 
     work = Path(tempfile.mkdtemp(prefix="pisml_ros_bench_"))
@@ -98,9 +99,11 @@ analyser:
     reports: list = []  # (arrival, model_id): the stages of one run share its model_id
 
     def on_model(msg):
-        key = f"model_{msg.stage}"
-        events.setdefault(key, time.monotonic())
-        events.setdefault(f"{key}_id", msg.model_id)
+        # the first explicit model of a run is the best one before refinement; the final one closes it
+        keys = [f"model_{msg.stage}"] + (["model_final"] if message_metrics(msg).get("final") == 1.0 else [])
+        for key in keys:
+            events.setdefault(key, time.monotonic())
+            events.setdefault(f"{key}_id", msg.model_id)
 
     def on_report(msg):
         reports.append((time.monotonic(), msg.model_id))
@@ -130,7 +133,7 @@ analyser:
                 next_sample = now + 1.0
             if any(p.poll() is not None for p in procs.values()):
                 raise SystemExit(f"a node exited early; logs in {work}")
-            if link_start and now - link_start >= args.seconds and report_after("explicit") is not None:
+            if link_start and now - link_start >= args.seconds and report_after("final") is not None:
                 break
     finally:
         for proc in procs.values():
@@ -158,8 +161,9 @@ analyser:
                  "batches": len(latencies), "index_gaps": gaps[0],
                  "latency_ms": {f"p{q}": round(float(np.percentile(lat, q)), 3) for q in (50, 90, 99, 100)}
                  if lat.size else None},
-        "stages_after_12th_trajectory_s": {stage: after(f"model_{stage}") for stage in ("backbone", "hybrid", "explicit")},
-        "report_after_model_s": {stage: report_after(stage) for stage in ("backbone", "explicit")},
+        "stages_after_12th_trajectory_s": {stage: after(f"model_{stage}")
+                                           for stage in ("backbone", "hybrid", "explicit", "final")},
+        "report_after_model_s": {stage: report_after(stage) for stage in ("backbone", "explicit", "final")},
         "memory_mb": {name: {"start": round(v[min(5, len(v) - 1)][1], 1), "end": round(v[-1][1], 1),
                              "max": round(max(m for _, m in v), 1),
                              "every_30_s": [round(m, 1) for _, m in v[::30]]} for name, v in memory.items() if v},

@@ -124,7 +124,11 @@ def test_pisml_pipeline_stages_and_model(train, small, test_set):
     updates = []
     est = make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(train, small, callback=updates.append)
     stages = [u.stage for u in updates if u.model is not None]
-    assert stages == ["backbone", "hybrid", "explicit"]
+    # the best explicit model so far goes out before the (long) refinement, the selected one at the end
+    assert stages == ["backbone", "hybrid", "explicit (before refinement)", "explicit"]
+    preliminary = next(u.model for u in updates if u.stage == "explicit (before refinement)")
+    assert isinstance(preliminary, ExplicitModel)
+    assert preliminary.metadata["selection"]["chosen"] in ("backbone", "trained backbone", "distilled")
     progress = [u.progress for u in updates]
     assert progress == sorted(progress) and progress[-1] == 1.0
     model = est.explicit_model_

@@ -55,7 +55,9 @@ class IdentConfig:
     refine_max_windows: int = 40
     refine_max_nfev: int = 10
     refine_prune_t: float = 2.0
-    refine_rounds: int = 1
+    # pruning rounds after the refinement (t-value pruning): off by default, the pruned model lost to the
+    # unpruned one on the protocol's training error (clean: 0.15 vs 0.033 %) and costs as much again
+    refine_rounds: int = 0
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None) -> "IdentConfig":

@@ -82,6 +82,15 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
                          "smallsignal_trajectories": len(smallsignal) if smallsignal is not None else 0}}
 
 
+def _selected(template: ExplicitModel, candidates: dict, scores: dict) -> ExplicitModel:
+    """The candidate with the smallest training error, with ``template``'s metadata and the selection."""
+    chosen = min(scores, key=lambda name: scores[name])
+    model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
+                          candidates[chosen].coefficients, dict(template.metadata))
+    model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores)}
+    return model
+
+
 class ModSINDy(_Estimator):
     """Mod-SINDy: the physics library Θ, finite-difference derivatives, ridge regression (1e-6)."""
 
@@ -219,22 +228,26 @@ class PISML(_Estimator):
         self._emit("distillation", 0.7, losses={"terms": len(explicit.terms), "nonzero": explicit.n_parameters})
         # 4. fine-tuning of the merged coefficients on trajectories (+ small-signal responses)
         candidates = {"backbone": backbone, "trained backbone": trained_backbone, "distilled": explicit}
+        scores = {name: training_error(model, train) for name, model in candidates.items()}
         if cfg.refine:
+            # refinement takes most of the time: the best explicit model so far goes out first
+            preliminary = _selected(explicit, candidates, scores)
+            preliminary.metadata["stage"] = "explicit (before refinement)"
+            self._emit("explicit (before refinement)", 0.7, model=preliminary)
             started = time.monotonic()
             refined = refine_explicit(explicit, train, smallsignal, cfg,
                                       lambda progress, losses: self._emit("refinement", 0.7 + 0.28 * progress,
-                                                                          losses=losses))
+                                                                          losses=losses),
+                                      start_error=scores["distilled"], errors=scores)
             candidates.update(refined)
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the training records when run
         # freely from their first samples: refinement or pruning that made things worse is dropped
-        scores = {name: training_error(model, train) for name, model in candidates.items()}
+        scores.update({name: training_error(model, train) for name, model in candidates.items()
+                       if name not in scores})
         self.candidates_ = candidates
-        chosen = min(scores, key=lambda name: scores[name])
-        explicit = ExplicitModel(train.state_names, train.input_names, candidates[chosen].terms,
-                                 candidates[chosen].coefficients, dict(explicit.metadata))
-        explicit.metadata["selection"] = {"chosen": chosen, "training_error_pct": scores}
-        self.metrics_["training_error_pct"] = scores[chosen]
+        explicit = _selected(explicit, candidates, scores)
+        self.metrics_["training_error_pct"] = scores[explicit.metadata["selection"]["chosen"]]
         self._emit("selection", 0.99, losses={f"train_err_{k.replace(' ', '_')}": v for k, v in scores.items()})
         explicit.metadata["stage"] = "explicit"
         self.metrics_["explicit_nonzero"] = float(explicit.n_parameters)
@@ -295,9 +308,17 @@ def training_error(model, train: Dataset) -> float:
 
 
 def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig,
-                    progress: Callable[[float, dict], None] | None = None) -> dict:
+                    progress: Callable[[float, dict], None] | None = None, start_error: float | None = None,
+                    errors: dict | None = None) -> dict:
     """Multiple-shooting least-squares refinement of the nonzero coefficients of ``model``, then
     rounds of pruning the coefficients the data do not support (|t| < refine_prune_t) and refitting.
+
+    Parameters
+    ----------
+    start_error : float, optional
+        :func:`training_error` of ``model``, if the caller has it already.
+    errors : dict, optional
+        Receives the training errors this function computes, by candidate name.
 
     Returns
     -------
@@ -337,7 +358,11 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         out["refined" if r == 0 else f"pruned {r}"] = candidate
         if r == rounds - 1 or cfg.refine_prune_t <= 0:
             break
-        if r == 0 and training_error(candidate, train) > training_error(model, train):
+        if r == 0:
+            errors = {} if errors is None else errors
+            errors["refined"] = training_error(candidate, train)
+            start_error = training_error(model, train) if start_error is None else start_error
+        if r == 0 and errors["refined"] > start_error:
             # refinement from this start went astray (noisy data, far-off fast modes): pruning its
             # t-values would only compound that, and costs as much again
             model.metadata.setdefault("refinement_errors", []).append(

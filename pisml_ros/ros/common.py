@@ -15,6 +15,30 @@ MODEL_TOPIC = "/pisml/model"
 STABILITY_TOPIC = "/pisml/stability"
 
 
+def limit_malloc_arenas(arenas: int = 2) -> None:
+    """Cap glibc's malloc arenas: each training thread otherwise gets arenas of its own that keep
+    their peak size after it ends, and a node that trains again and again grows (no-op off glibc)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").mallopt(-8, int(arenas))  # M_ARENA_MAX
+    except (OSError, AttributeError):
+        pass
+
+
+def release_freed_memory() -> None:
+    """Hand memory freed by a finished training run back to the OS (glibc ``malloc_trim``)."""
+    import gc
+
+    gc.collect()
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def measurement_qos(depth: int = 5000) -> QoSProfile:
     """Reliable with a deep queue: identification must not lose samples."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,

@@ -27,8 +27,8 @@ import threading
 import time
 from pathlib import Path
 
-from .common import MEASUREMENT_TOPIC, MODEL_TOPIC, declare, latched_qos, measurement_qos, publish_diagnostics, \
-    run_node, status
+from .common import MEASUREMENT_TOPIC, MODEL_TOPIC, declare, latched_qos, limit_malloc_arenas, measurement_qos, \
+    publish_diagnostics, release_freed_memory, run_node, status
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from pisml_msgs.action import Identify  # noqa: E402
@@ -79,6 +79,7 @@ def _message_stage(engine_stage: str, model) -> str:
 class IdentifierNode(Node):
     def __init__(self):
         super().__init__("identifier")
+        limit_malloc_arenas()
         from ..ident import METHODS
 
         self.min_trajectories = declare(self, "min_trajectories", 12,
@@ -106,7 +107,9 @@ class IdentifierNode(Node):
         smallsignal_path = declare(self, "smallsignal_path", "",
                                    "CSV/bag of small-signal records passed to the engine (empty = none)")
         initial_model = declare(self, "initial_model", "", "explicit model JSON published at start-up (empty = none)")
-        max_samples = declare(self, "max_buffer_samples", 2_000_000, "samples kept in the buffer (oldest dropped)",
+        # 200 000 samples = 20 s at 10 kHz, 500 records of 40 ms: far more than a training run takes, and a
+        # bounded, small footprint (~25 MB) for a node that streams for hours
+        max_samples = declare(self, "max_buffer_samples", 200_000, "samples kept in the buffer (oldest dropped)",
                               1000, 100_000_000)
         depth = declare(self, "qos_depth", 5000, "depth of the reliable measurement queue", 10, 1000000)
         # configuration errors surface now (exit status 2), not at the first training
@@ -125,6 +128,7 @@ class IdentifierNode(Node):
         self.trained_at = None          # buffer.next_uid when the last automatic run started
         self.last_model = ""            # model_id and stage of the last publication
         self.history: list[dict] = []   # engine updates of this node's runs (losses over time)
+        self.max_history = 5000
         self._last_diag = 0.0
 
         self.model_pub = self.create_publisher(IdentifiedModel, MODEL_TOPIC, latched_qos())
@@ -200,6 +204,7 @@ class IdentifierNode(Node):
                 return  # shutting down: the publishers may be gone
             job.stage, job.progress, job.epoch = update.stage, float(update.progress), int(update.epoch)
             job.losses = {k: float(v) for k, v in update.losses.items() if _is_number(v)}
+            del self.history[:-self.max_history]  # a node retraining for days keeps its recent curves
             self.history.append({"run": job.model_id, "t": round(time.monotonic() - started, 3),
                                  "stage": update.stage, "progress": job.progress, "epoch": job.epoch,
                                  "losses": job.losses})
@@ -238,7 +243,9 @@ class IdentifierNode(Node):
             self.last_error = job.error
             self.get_logger().error(job.error)
         finally:
+            estimator = None  # noqa: F841 (the run's models and tensors go before the trim)
             job.done.set()
+            release_freed_memory()
         if job.stop.is_set():
             return  # the node is shutting down: nothing to publish or start
         self._publish_diagnostics()
