@@ -62,7 +62,7 @@ identifier:
                      retrain_min_new_trajectories: 12, max_train_trajectories: 24, output_dir: "{work / 'identifier'}",
                      smallsignal_path: "{BENCH.parent / 'bags' / 'smallsignal_40dB'}"}}
 analyser:
-  ros__parameters: {{ug_points: [0.8, 1.0], sweep_points: 0}}
+  ros__parameters: {{ug_points: [0.8, 1.0]}}  # default sweep: 23 points of ug for the margins
 """)
     procs = {}
     for name in ("analyser", "identifier", "measurement"):
