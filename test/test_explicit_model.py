@@ -134,3 +134,23 @@ def test_refinement_exact_and_iterative_steps_agree(truth):
     exact = _replay_error(model, results["exact"].coefficients, data)
     assert exact < 0.2 * _replay_error(model, start, data)
     assert exact < 2 * _replay_error(model, results["lsmr"].coefficients, data) + 1e-9
+
+
+def test_refinement_stops_when_told_the_fit_is_not_improving(truth):
+    """``keep_going`` is asked at accepted points; False ends the fit there, with what it had."""
+    from pisml_ros.ident.trajfit import TrajectoryFitter
+
+    model, plant = truth
+    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.004, spread=0.01, rng_seed=2)
+    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=10, substeps=2, weights=weights)
+    asked = []
+
+    def keep_going(coef):
+        asked.append(coef.copy())
+        return False
+
+    result = fitter.fit(start, model.coefficients != 0, data, lambda_jac=0.0, max_nfev=6, keep_going=keep_going,
+                        check_every=1)
+    assert result.abandoned and len(asked) == 1 and result.nfev < 6
+    np.testing.assert_array_equal(result.coefficients, asked[0])
+    assert np.all(np.isfinite(result.coefficients)) and np.all((result.coefficients != 0) <= (start != 0))

@@ -344,24 +344,37 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                 progress((r + min(nfev / max(cfg.refine_max_nfev, 1), 1.0)) / rounds,
                          {"refine_cost": cost, "nonzero": int(mask.sum()), "round": r})
 
+        if r == 0 and start_error is None:
+            start_error = training_error(model, train)
+
+        def improving(c, r=r):
+            # round 0 only: stop early when the free-run error of the training records has not gone
+            # below the start model's (noisy data: a far-off start can make the refinement diverge)
+            return r > 0 or training_error(ExplicitModel(model.state_names, model.input_names, model.terms, c),
+                                           train) < start_error
+
         try:
             result = fitter.fit(coef, mask, train, smallsignal, lambda_jac=1.0 if smallsignal is not None else 0.0,
-                                max_nfev=cfg.refine_max_nfev, on_evaluation=on_evaluation)
+                                max_nfev=cfg.refine_max_nfev, on_evaluation=on_evaluation, keep_going=improving)
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
             # a refinement that breaks down (a window blowing up) leaves the earlier candidates standing
             model.metadata.setdefault("refinement_errors", []).append(f"round {r}: {type(err).__name__}: {err}")
             break
         coef = result.coefficients
         meta = dict(model.metadata)
-        meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds, "round": r}
+        meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds, "round": r,
+                              "abandoned": result.abandoned}
         candidate = ExplicitModel(model.state_names, model.input_names, model.terms, coef.copy(), meta)
         out["refined" if r == 0 else f"pruned {r}"] = candidate
+        if result.abandoned:
+            model.metadata.setdefault("refinement_errors", []).append(
+                f"round {r}: abandoned after {result.nfev} evaluations (training error not improving)")
+            break
         if r == rounds - 1 or cfg.refine_prune_t <= 0:
             break
         if r == 0:
             errors = {} if errors is None else errors
             errors["refined"] = training_error(candidate, train)
-            start_error = training_error(model, train) if start_error is None else start_error
         if r == 0 and errors["refined"] > start_error:
             # refinement from this start went astray (noisy data, far-off fast modes): pruning its
             # t-values would only compound that, and costs as much again

@@ -37,6 +37,13 @@ class FitResult:
     nfev: int
     seconds: float
     t_values: np.ndarray  # coefficient / standard error (support entries), nan where undetermined
+    abandoned: bool = False  # stopped early because ``keep_going`` said the fit was not improving
+
+
+class _Abandon(Exception):
+    def __init__(self, params):
+        super().__init__("refinement abandoned")
+        self.params = params
 
 
 def _steady_start(tr, min_samples=5):
@@ -80,7 +87,7 @@ class TrajectoryFitter:
 
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
-            on_evaluation=None) -> FitResult:
+            on_evaluation=None, keep_going=None, check_every: int = 3) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -91,6 +98,11 @@ class TrajectoryFitter:
             Records that start in steady state and then see a small input step.
         lambda_jac : float
             Weight of the small-signal residuals (0 switches them off).
+        keep_going : callable, optional
+            ``keep_going(coefficients) -> bool``, asked at every ``check_every``-th accepted point
+            (Jacobian evaluation); False stops the fit there (``FitResult.abandoned``). The
+            multiple-shooting cost always decreases, but on noisy data the free-run error of the
+            model can grow meanwhile: this lets a caller stop paying for such a fit.
         """
         import torch
         from torch.func import jacfwd
@@ -199,7 +211,13 @@ class TrajectoryFitter:
                 on_evaluation(calls[0], float(0.5 * r @ r))
             return r
 
+        jac_calls = [0]
+
         def jac(params):
+            jac_calls[0] += 1
+            if keep_going is not None and jac_calls[0] > 1 and (jac_calls[0] - 1) % check_every == 0:
+                if not keep_going(to_coefficients(params)):
+                    raise _Abandon(params)
             theta, x_start = split(torch.tensor(params))
             dense = jac_theta(theta, x_start).numpy()  # (n_res, n_c)
             # windows are independent: one forward tangent per state component covers all windows
@@ -225,14 +243,23 @@ class TrajectoryFitter:
             full = dense_full + sparse
             return full.toarray() if exact else full
 
+        def to_coefficients(params):
+            out = np.zeros(coef0.size)
+            out[idx] = np.asarray(params)[:n_c] * scale
+            return out.reshape(coef0.shape)
+
         theta0 = np.concatenate([coef0.ravel()[idx] / scale, np.zeros(n_x)])
         with torch.no_grad():
             n_rows = int(all_residuals(torch.tensor(theta0)).numel())
         exact = self.exact_range[0] <= n_rows * (n_c + n_x) <= self.exact_range[1]
-        result = scipy.optimize.least_squares(fun, theta0, jac=jac, method="trf", x_scale="jac", max_nfev=max_nfev,
-                                              tr_solver="exact" if exact else "lsmr")
-        coef = np.zeros(coef0.size)
-        coef[idx] = result.x[:n_c] * scale
+        try:
+            result = scipy.optimize.least_squares(fun, theta0, jac=jac, method="trf", x_scale="jac",
+                                                  max_nfev=max_nfev, tr_solver="exact" if exact else "lsmr")
+        except _Abandon as stop:
+            r = fun(stop.params)
+            return FitResult(to_coefficients(stop.params), float(0.5 * r @ r), calls[0], time.monotonic() - started,
+                             np.full(coef0.shape, np.nan), abandoned=True)
+        coef = to_coefficients(result.x).ravel()
         # standard errors from the Gauss-Newton approximation, for pruning
         t_values = np.full(coef0.size, np.nan)
         try:

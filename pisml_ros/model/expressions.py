@@ -117,6 +117,8 @@ class TermSet:
             self._numpy = sympy.lambdify(self._symbols, self.exprs, modules="numpy", cse=True)
         z = np.asarray(z, dtype=float)
         cols = self._numpy(*np.moveaxis(z, -1, 0))
+        if z.ndim == 1:  # one point (equilibrium searches): scalars, no broadcasting needed
+            return np.array(cols, dtype=float)
         return np.stack([np.broadcast_to(c, z.shape[:-1]).astype(float) for c in cols], axis=-1)
 
     def _product_plan(self):
@@ -182,6 +184,8 @@ class TermSet:
             self._grad = sympy.lambdify(self._symbols, grads, modules="numpy", cse=True)
         z = np.asarray(z, dtype=float)
         rows = self._grad(*np.moveaxis(z, -1, 0))
+        if z.ndim == 1:  # one point (Jacobians in equilibrium searches): 20x faster than broadcasting each entry
+            return np.array(rows, dtype=float)
         return np.stack([np.stack([np.broadcast_to(c, z.shape[:-1]).astype(float) for c in row], axis=-1)
                          for row in rows], axis=-2)
 
