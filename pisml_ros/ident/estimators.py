@@ -34,7 +34,8 @@ class IdentificationCancelled(Exception):
 
 @dataclasses.dataclass
 class StageUpdate:
-    """Progress of a fit: ``stage`` (backbone | training | hybrid | distillation | refinement | explicit),
+    """Progress of a fit: ``stage`` (backbone | training | hybrid | distillation |
+    explicit (before refinement) | refinement | selection | explicit),
     overall ``progress`` in [0, 1], ``epoch``, current ``losses`` and, when a stage's model is ready, ``model``."""
 
     stage: str
@@ -347,11 +348,16 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         if r == 0 and start_error is None:
             start_error = training_error(model, train)
 
+        last_check: dict = {}
+
         def improving(c, r=r):
             # round 0 only: stop early when the free-run error of the training records has not gone
             # below the start model's (noisy data: a far-off start can make the refinement diverge)
-            return r > 0 or training_error(ExplicitModel(model.state_names, model.input_names, model.terms, c),
-                                           train) < start_error
+            if r > 0:
+                return True
+            last_check["error"] = training_error(ExplicitModel(model.state_names, model.input_names,
+                                                               model.terms, c), train)
+            return last_check["error"] < start_error
 
         try:
             result = fitter.fit(coef, mask, train, smallsignal, lambda_jac=1.0 if smallsignal is not None else 0.0,
@@ -367,7 +373,9 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         candidate = ExplicitModel(model.state_names, model.input_names, model.terms, coef.copy(), meta)
         out["refined" if r == 0 else f"pruned {r}"] = candidate
         if result.abandoned:
-            model.metadata.setdefault("refinement_errors", []).append(
+            if errors is not None and r == 0:
+                errors["refined"] = last_check["error"]  # the abandoned point is the one just checked
+            model.metadata.setdefault("refinement_notes", []).append(
                 f"round {r}: abandoned after {result.nfev} evaluations (training error not improving)")
             break
         if r == rounds - 1 or cfg.refine_prune_t <= 0:

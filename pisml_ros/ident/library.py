@@ -78,7 +78,7 @@ def coupling_separation(x, state_names: Sequence[str], roles: SignalRoles) -> fl
         rest = product - affine @ np.linalg.lstsq(affine, product, rcond=None)[0]
         spread = product.std()
         worst = min(worst, float(rest.std() / spread) if spread > 0 else 0.0)
-    return worst
+    return worst if np.isfinite(worst) else 0.0
 
 
 def physics_library(roles: SignalRoles, states: Sequence[str], integral_states: bool = True,

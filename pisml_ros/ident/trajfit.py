@@ -256,7 +256,9 @@ class TrajectoryFitter:
             result = scipy.optimize.least_squares(fun, theta0, jac=jac, method="trf", x_scale="jac",
                                                   max_nfev=max_nfev, tr_solver="exact" if exact else "lsmr")
         except _Abandon as stop:
-            r = fun(stop.params)
+            with torch.no_grad():
+                r = all_residuals(torch.tensor(stop.params)).numpy()
+            r = np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
             return FitResult(to_coefficients(stop.params), float(0.5 * r @ r), calls[0], time.monotonic() - started,
                              np.full(coef0.shape, np.nan), abandoned=True)
         coef = to_coefficients(result.x).ravel()

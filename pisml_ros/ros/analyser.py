@@ -52,15 +52,16 @@ def root_locus(system, grid, theta_g: float = 0.0) -> dict:
         "max_real": [... or None], "boundaries": [...], "errors": {ug: message}}``
     """
     eig_at, errors = {}, {}
-    previous = [None]  # the equilibrium at the last grid point: a start one small step away
+    eq_at: dict = {}  # equilibria found so far, by ug
 
     def max_real(g):
         g = float(g)
         if g not in eig_at:
-            # from the neighbour's equilibrium one root search usually suffices; the search from
-            # the model's reference points (a 20-step continuation) is the fallback: 20x the cost
-            x = system.equilibrium(g, theta_g, x0=previous[0])
-            previous[0] = x
+            # from the nearest equilibrium found so far one root search usually suffices; the search
+            # from the model's reference points (a 20-step continuation) is the fallback: 20x the cost
+            near = min(eq_at, key=lambda h: abs(h - g)) if eq_at else None
+            x = system.equilibrium(g, theta_g, x0=eq_at[near] if near is not None else None)
+            eq_at[g] = x
             eig_at[g] = np.linalg.eigvals(system.jacobian(x, np.array([g, theta_g])))
         return float(np.max(eig_at[g].real))
 

@@ -11,8 +11,9 @@ configuration overrides; feedback per engine update; cancellable).
 
 Every stage's model is published on /pisml/model (transient-local, depth 1):
 the sparse backbone first, then the hybrid (backbone + neural residual: no
-explicit form, so ``model_json`` is empty), then the explicit model, whose
-metrics include ``final = 1``. Explicit models are saved atomically to
+explicit form, so ``model_json`` is empty), then the best explicit model
+before refinement (PISML: as soon as distillation ends), then the final
+explicit model, whose metrics include ``final = 1``. Explicit models are saved atomically to
 ``output_dir`` as ``model_<stage>.json`` and ``latest.json``; the update log and
 the engine's training curves go to ``history.json``. ``initial_model`` publishes
 a saved model at start-up. /diagnostics carries the buffer, the stage, the
@@ -140,7 +141,7 @@ class IdentifierNode(Node):
         self.max_history = 5000
         self._last_diag = 0.0
 
-        _import_engine_libraries()  # before subscribing: measurements that arrive find a node ready to train
+        _import_engine_libraries()  # before subscribing: a publisher that waits for subscribers starts into a warm node
         self.model_pub = self.create_publisher(IdentifiedModel, MODEL_TOPIC, latched_qos())
         self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(MeasurementBatch, MEASUREMENT_TOPIC, self._on_batch, measurement_qos(depth))
@@ -214,7 +215,7 @@ class IdentifierNode(Node):
                 return  # shutting down: the publishers may be gone
             job.stage, job.progress, job.epoch = update.stage, float(update.progress), int(update.epoch)
             job.losses = {k: float(v) for k, v in update.losses.items() if _is_number(v)}
-            del self.history[:-self.max_history]  # a node retraining for days keeps its recent curves
+            del self.history[:-(self.max_history - 1)]  # a node retraining for days keeps its recent curves
             self.history.append({"run": job.model_id, "t": round(time.monotonic() - started, 3),
                                  "stage": update.stage, "progress": job.progress, "epoch": job.epoch,
                                  "losses": job.losses})
@@ -254,8 +255,8 @@ class IdentifierNode(Node):
             self.get_logger().error(job.error)
         finally:
             estimator = None  # noqa: F841 (the run's models and tensors go before the trim)
+            release_freed_memory()  # before done: the next run must not start while this one trims
             job.done.set()
-            release_freed_memory()
         if job.stop.is_set():
             return  # the node is shutting down: nothing to publish or start
         self._publish_diagnostics()
