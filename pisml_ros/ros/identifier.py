@@ -21,6 +21,7 @@ progress, the latest losses and the last error.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import queue
@@ -80,6 +81,27 @@ def _import_engine_libraries() -> None:
     import torchdiffeq  # noqa: F401
 
 
+@contextlib.contextmanager
+def _thread_limits(threads: int):
+    """At most ``threads`` threads in torch's and the BLAS pools while training."""
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # BLAS pools keep their size
+        threadpool_limits = None
+    try:
+        if threadpool_limits is None:
+            yield
+        else:
+            with threadpool_limits(limits=threads):
+                yield
+    finally:
+        torch.set_num_threads(previous)
+
+
 def _message_stage(engine_stage: str, model) -> str:
     if isinstance(model, ExplicitModel):
         return "backbone" if engine_stage == "backbone" else "explicit"
@@ -121,6 +143,10 @@ class IdentifierNode(Node):
         # bounded, small footprint (~25 MB) for a node that streams for hours
         max_samples = declare(self, "max_buffer_samples", 200_000, "samples kept in the buffer (oldest dropped)",
                               1000, 100_000_000)
+        # on a small machine the link must keep a core: training takes the others (torch and BLAS pools)
+        self.training_threads = declare(self, "training_threads", max(1, (os.cpu_count() or 2) - 1),
+                                        "threads for training (torch and BLAS); leave a core for the link",
+                                        1, 256)
         depth = declare(self, "qos_depth", 5000, "depth of the reliable measurement queue", 10, 1000000)
         # configuration errors surface now (exit status 2), not at the first training
         self.base_overrides = overrides_from_assignments(overrides, "parameter overrides")
@@ -231,7 +257,8 @@ class IdentifierNode(Node):
 
         try:
             estimator = make_estimator(job.method, job.config)
-            estimator.fit(job.data, self.smallsignal, callback=callback, should_stop=job.should_stop)
+            with _thread_limits(self.training_threads):
+                estimator.fit(job.data, self.smallsignal, callback=callback, should_stop=job.should_stop)
             final = estimator.explicit_model_ if estimator.explicit_model_ is not None else estimator.model_
             metrics = {k: v for k, v in estimator.metrics_.items() if _is_number(v)}
             metrics.update(final=1.0, train_trajectories=len(job.data), train_samples=job.data.n_samples,
