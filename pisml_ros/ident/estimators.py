@@ -338,15 +338,14 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     coef = model.coefficients.copy()
     mask = coef != 0
     rounds = 1 + cfg.refine_rounds
+    if start_error is None:
+        start_error = training_error(model, train)
     out = {}
     for r in range(rounds):
         def on_evaluation(nfev, cost, r=r):
             if progress:
                 progress((r + min(nfev / max(cfg.refine_max_nfev, 1), 1.0)) / rounds,
                          {"refine_cost": cost, "nonzero": int(mask.sum()), "round": r})
-
-        if r == 0 and start_error is None:
-            start_error = training_error(model, train)
 
         last_check: dict = {}
 

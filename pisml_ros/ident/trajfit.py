@@ -201,11 +201,14 @@ class TrajectoryFitter:
 
         calls = [0]
 
-        def fun(params):
+        def residual_vector(params):
             with torch.no_grad():
                 r = all_residuals(torch.tensor(params)).numpy()
             # a trial step that makes a window blow up is just a bad step (large, finite residuals)
-            r = np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+            return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+
+        def fun(params):
+            r = residual_vector(params)
             calls[0] += 1
             if on_evaluation is not None:
                 on_evaluation(calls[0], float(0.5 * r @ r))
@@ -256,9 +259,7 @@ class TrajectoryFitter:
             result = scipy.optimize.least_squares(fun, theta0, jac=jac, method="trf", x_scale="jac",
                                                   max_nfev=max_nfev, tr_solver="exact" if exact else "lsmr")
         except _Abandon as stop:
-            with torch.no_grad():
-                r = all_residuals(torch.tensor(stop.params)).numpy()
-            r = np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+            r = residual_vector(stop.params)
             return FitResult(to_coefficients(stop.params), float(0.5 * r @ r), calls[0], time.monotonic() - started,
                              np.full(coef0.shape, np.nan), abandoned=True)
         coef = to_coefficients(result.x).ravel()

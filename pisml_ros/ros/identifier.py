@@ -86,18 +86,16 @@ def _thread_limits(threads: int):
     """At most ``threads`` threads in torch's and the BLAS pools while training."""
     import torch
 
+    try:
+        from threadpoolctl import threadpool_limits
+        blas = threadpool_limits(limits=threads)
+    except ImportError:  # BLAS pools keep their size
+        blas = contextlib.nullcontext()
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # BLAS pools keep their size
-        threadpool_limits = None
-    try:
-        if threadpool_limits is None:
+        with blas:
             yield
-        else:
-            with threadpool_limits(limits=threads):
-                yield
     finally:
         torch.set_num_threads(previous)
 
