@@ -9,7 +9,7 @@ import pytest
 from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum_wasserstein
 from pisml_ros.data import read_dataset, write_dataset
 from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
-from pisml_ros.ident.backbone import fit_backbone
+from pisml_ros.ident.backbone import fit_backbone, noise_moments, sparse_regression
 from pisml_ros.ident.library import coupling_separation, physics_library
 from pisml_ros.model import ExplicitModel
 from pisml_ros.plant import InverterPlant
@@ -87,6 +87,41 @@ def test_backbone_is_fast_sparse_and_close(train, test_set):
                          threshold=0.02)
     errs = protocol_errors(plain, test_set)
     assert errs["iod"] < 10 and errs["ood"] < 10
+
+
+def test_noise_compensated_regression_removes_the_errors_in_variables_bias():
+    # b = 2 x + 0.5 y with x and y measured with noise as large as x's own spread: plain least
+    # squares attenuates the x coefficient towards 2 / (1 + 1) = 1; the compensated fit does not
+    rng = np.random.default_rng(0)
+    n = 20000
+    x, y = rng.standard_normal(n), rng.standard_normal(n)
+    b = (2 * x + 0.5 * y)[:, None]
+    a = np.column_stack([x + rng.standard_normal(n), y + 0.1 * rng.standard_normal(n)])
+    noise_aa = np.diag([1.0, 0.01]) * n
+    plain = sparse_regression(a, b, 0.0, 1e-9)
+    compensated = sparse_regression(a, b, 0.0, 1e-9, noise_aa=noise_aa, noise_ab=np.zeros((2, 1)))
+    assert abs(plain[0, 0] - 1.0) < 0.05
+    assert abs(compensated[0, 0] - 2.0) < 0.1 and abs(compensated[1, 0] - 0.5) < 0.05
+
+
+def test_noise_moments_match_the_noise_level(train):
+    from pisml_ros.model.expressions import term_set
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    noisy = add_measurement_noise(train, 40.0, seed=1)
+    terms = term_set(["1", "il_d"], tuple(train.state_names) + tuple(train.input_names))
+    sigma = np.full(len(train.state_names), 0.01)
+    noise_aa, noise_ab = noise_moments(noisy, terms, 10, sigma, draws=16)
+    # the trapezoid integral of white noise over 10 samples: variance σ²·dt²·Σ(weights²)
+    rows = sum(len(tr) - 10 for tr in train)
+    weights = np.r_[0.5, np.ones(9), 0.5]
+    expected = rows * 0.01 ** 2 * train.dt ** 2 * np.sum(weights ** 2)
+    assert noise_aa[0, 0] == pytest.approx(0.0, abs=1e-18)
+    assert noise_aa[1, 1] == pytest.approx(expected, rel=0.1)
+    # the end points shared by the integral and the increment n_end − n_start carry equal weights
+    # (0.5·dt), so their correlations cancel
+    il = train.state_names.index("il_d")
+    assert abs(noise_ab[1, il]) < 0.1 * np.sqrt(noise_aa[1, 1] * rows * 2 * 0.01 ** 2)
 
 
 def test_couplings_are_kept_only_where_the_data_separate_them(plant, train):

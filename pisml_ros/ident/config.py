@@ -27,6 +27,9 @@ class IdentConfig:
     backbone_span: int = 10
     backbone_threshold: float = 0.02
     backbone_alpha: float = 1e-6
+    # also fit a backbone compensated for the noise in its regressors (backbone.noise_moments), a
+    # candidate of the final selection (noisy data only)
+    backbone_noise_correction: bool = True
     # the rotating-frame couplings (roles.frequency × dq signals) stay in Θ only when the data
     # separate them from the plain signals at least this well (library.coupling_separation)
     coupling_min_separation: float = 0.25

@@ -229,6 +229,12 @@ class PISML(_Estimator):
         self._emit("distillation", 0.7, losses={"terms": len(explicit.terms), "nonzero": explicit.n_parameters})
         # 4. fine-tuning of the merged coefficients on trajectories (+ small-signal responses)
         candidates = {"backbone": backbone, "trained backbone": trained_backbone, "distilled": explicit}
+        if cfg.backbone_noise_correction and _noisy(train):
+            compensated = fit_backbone(train, theta_terms, span=cfg.backbone_span, threshold=cfg.backbone_threshold,
+                                       alpha=cfg.backbone_alpha, noise_correction=True)
+            compensated.metadata = {**backbone.metadata, "backbone_fit": compensated.metadata["method"],
+                                    "noise_std": compensated.metadata["noise_std"]}
+            candidates["noise-compensated backbone"] = compensated
         scores = {name: training_error(model, train) for name, model in candidates.items()}
         if cfg.refine:
             # refinement takes most of the time: the best explicit model so far goes out first
@@ -255,6 +261,14 @@ class PISML(_Estimator):
         self.metrics_["hybrid_parameters"] = float(hybrid.n_parameters)
         self._emit("explicit", 1.0, model=explicit)
         return self._finish(explicit, explicit)
+
+
+def _noisy(train: Dataset, level: float = 1e-5) -> bool:
+    """Whether the measured noise (relative to each state's spread) is worth compensating."""
+    from .noise import estimate_noise_std
+
+    spread = np.concatenate([tr.x for tr in train]).std(axis=0)
+    return bool(np.max(estimate_noise_std(train) / np.maximum(spread, 1e-12)) > level)
 
 
 def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: ExplicitModel | None, lambda_pert: float):
