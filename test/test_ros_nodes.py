@@ -48,6 +48,29 @@ def test_analyser_publishes_latched_plant_stability(probe, tmp_path):
         assert stop_node(proc) == 0
 
 
+def test_looped_playback_keeps_real_time_across_passes(probe, tmp_path):
+    # a pass of 10 ms: each restart of the loop must continue the time base, or a late timer tick
+    # at every wrap (~2 ms) would cost a fifth of the samples
+    data = generate(InverterPlant(), *schedules_for("train", seed=4, n_traj=1, duration=0.01))
+    csv_path = write_csv(data, tmp_path / "short.csv")
+    arrivals = []
+    sub = probe.create_subscription(MeasurementBatch, "/pisml/measurement",
+                                    lambda msg: arrivals.append((time.monotonic(), len(msg.x) // 13)),
+                                    measurement_qos())
+    meas = start_node("pisml-measurement", "-p", "source:=csv", "-p", f"path:={csv_path}", "-p", "rate:=1.0",
+                      "-p", "loop:=true", "-p", "batch_size:=50", "-p", "start_delay:=0.0", log_dir=tmp_path)
+    try:
+        assert spin_until(probe, lambda: arrivals and arrivals[-1][0] - arrivals[0][0] > 4.0, 30.0), \
+            meas.log_path.read_text()
+        t_first = arrivals[0][0] + 1.0  # past discovery and the first catch-up
+        window = [(t, n) for t, n in arrivals if t >= t_first]
+        rate = sum(n for _, n in window[1:]) / (window[-1][0] - window[0][0])
+        assert rate == pytest.approx(10_000, rel=0.03)
+    finally:
+        probe.destroy_subscription(sub)
+        assert stop_node(meas) == 0
+
+
 def test_measurement_to_identifier_carries_every_sample(probe, tmp_path):
     schedules, _ = schedules_for("train", seed=4, n_traj=3)
     data = generate(InverterPlant(), schedules, 0.02)

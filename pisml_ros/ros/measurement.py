@@ -72,6 +72,7 @@ class MeasurementNode(Node):
         # sample time at which each batch is due, batches laid end to end
         sizes = [stop - start for _, start, stop, _ in self.batches]
         self.batch_time = [self.dataset.dt * n for n in itertools.accumulate([0] + sizes[:-1])]
+        self.pass_time = self.dataset.dt * sum(sizes)  # data time of one pass
         self.next_batch = 0
         self.published_samples = 0
         self.passes = 0
@@ -110,7 +111,11 @@ class MeasurementNode(Node):
         if self.next_batch >= len(self.batches):
             self.passes += 1
             if self.loop:
-                self.next_batch, self.t_start = 0, None
+                # the next pass is due where this one's data ends, not when this tick happens to
+                # run: a pass that fell behind (timer late under load) keeps catching up
+                self.next_batch = 0
+                if self.rate > 0:
+                    self.t_start += self.pass_time / self.rate
                 return
             self.timer.cancel()
             self.get_logger().info(f"done: published {self.published_samples} samples")
