@@ -9,10 +9,10 @@ Noise in the regressors (errors in variables) biases plain least squares: the no
 (integrator states) to compensate. With ``noise_correction`` the backbone subtracts those
 noise moments, estimated by re-noising the data at the measured noise level, from the normal
 equations (bias-compensated least squares) before the same STLSQ. Measured on the protocol
-(backbone alone, 40 dB, three noise seeds): the LCL part of the spectrum much closer to the
-truth (Wasserstein at ug 0.8: 2210-2330 → 217-957), trajectory errors mostly lower, but one
-case in four (50 dB) diverged out of distribution: PISML keeps it as a candidate, not as the
-start of the training.
+(backbone alone; 40 and 50 dB, three noise seeds, five recordings): the LCL part of the spectrum
+much closer to the truth in all five (Wasserstein at ug 0.8 at 40 dB: 2210-2330 → 217-957),
+trajectory errors lower in four, but one (50 dB) diverged out of distribution: PISML keeps it
+as a candidate of the final selection, not as the start of the training.
 """
 from __future__ import annotations
 
