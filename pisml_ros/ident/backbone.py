@@ -40,44 +40,43 @@ def sparse_regression(a: np.ndarray, b: np.ndarray, threshold: float, alpha: flo
     """
     import pysindy as ps
 
-    if noise_aa is not None:
-        a_norm = np.linalg.norm(a, axis=0)
-        a_norm = np.where(a_norm > 0, a_norm, 1.0)
-        gram = (a.T @ a - noise_aa) / np.outer(a_norm, a_norm)
-        cross = (a.T @ b - (noise_ab if noise_ab is not None else 0.0)) / a_norm[:, None]
-        vals, vecs = np.linalg.eigh(0.5 * (gram + gram.T))
-        # where the noise moments exceed the data's spread in some direction (noisy or short
-        # records) the compensated cost is unbounded there: floor the spectrum far below the
-        # ridge, which then holds those directions (and skip the unregularised refit, below)
-        determined = vals.min() > 1e-12 * vals.max()
-        vals = np.clip(vals, 1e-12 * vals.max(), None)
-        # a square factor with the compensated cost: gram = a_eff.T @ a_eff, a_eff.T @ b_eff = cross
-        a_eff = (vecs * np.sqrt(vals)).T
-        b_eff = (vecs / np.sqrt(vals)).T @ cross
-        b_norm = np.linalg.norm(b, axis=0)
-        b_norm = np.where(b_norm > 0, b_norm, 1.0)
-        opt = ps.STLSQ(threshold=threshold, alpha=alpha, max_iter=max_iter, unbias=bool(determined))
-        opt.fit(a_eff, b_eff / b_norm)
-        coef = np.atleast_2d(opt.coef_).T
-        return coef * b_norm[None, :] / a_norm[:, None]
     a_norm = np.linalg.norm(a, axis=0)
     a_norm = np.where(a_norm > 0, a_norm, 1.0)
     b_norm = np.linalg.norm(b, axis=0)
     b_norm = np.where(b_norm > 0, b_norm, 1.0)
-    opt = ps.STLSQ(threshold=threshold, alpha=alpha, max_iter=max_iter)
-    opt.fit(a / a_norm, b / b_norm)
+    a_fit, b_fit, unbias = a / a_norm, b / b_norm, True
+    if noise_aa is not None:
+        gram = (a.T @ a - noise_aa) / np.outer(a_norm, a_norm)
+        cross = (a.T @ b - (noise_ab if noise_ab is not None else 0.0)) / np.outer(a_norm, b_norm)
+        vals, vecs = np.linalg.eigh(0.5 * (gram + gram.T))
+        # where the noise moments exceed the data's spread in some direction (noisy or short
+        # records) the compensated cost is unbounded there: floor the spectrum far below the
+        # ridge, which then holds those directions (and skip the unregularised refit)
+        unbias = bool(vals.min() > 1e-12 * vals.max())
+        vals = np.clip(vals, 1e-12 * vals.max(), None)
+        # a square factor with the compensated cost: gram = a_fit.T @ a_fit, a_fit.T @ b_fit = cross
+        a_fit = (vecs * np.sqrt(vals)).T
+        b_fit = (vecs / np.sqrt(vals)).T @ cross
+    opt = ps.STLSQ(threshold=threshold, alpha=alpha, max_iter=max_iter, unbias=unbias)
+    opt.fit(a_fit, b_fit)
     coef = np.atleast_2d(opt.coef_).T  # pysindy: (n_targets, n_features)
     return coef * b_norm[None, :] / a_norm[:, None]
 
 
 def noise_moments(dataset: Dataset, terms, span: int, noise_std: np.ndarray, draws: int = 8,
-                  seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                  seed: int = 0, measured: tuple[np.ndarray, np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Noise moments of the integral-form matrices, by re-noising the measured states.
 
     Adding fresh white noise of the measured level to the (already noisy) states and recomputing
     A and B gives increments whose second moments are, to first order, those of the measurement
     noise in A and B: products such as v·i and the trapezoid weights shared by A and the end
     points of B are handled without any algebra.
+
+    Parameters
+    ----------
+    measured : (A, B), optional
+        :func:`~pisml_ros.ident.derivatives.integral_form` of ``dataset``, if the caller has it.
 
     Returns
     -------
@@ -87,7 +86,7 @@ def noise_moments(dataset: Dataset, terms, span: int, noise_std: np.ndarray, dra
     from ..data import Trajectory
 
     rng = np.random.default_rng(seed)
-    a, b = integral_form(dataset, terms, span=span)
+    a, b = measured if measured is not None else integral_form(dataset, terms, span=span)
     noise_aa = np.zeros((a.shape[1], a.shape[1]))
     noise_ab = np.zeros((a.shape[1], b.shape[1]))
     for _ in range(draws):
@@ -140,7 +139,7 @@ def fit_backbone(dataset: Dataset, terms: list[str], span: int = 10, threshold: 
         from .noise import estimate_noise_std
 
         noise = estimate_noise_std(dataset)
-        noise_aa, noise_ab = noise_moments(dataset, ts, span, noise)
+        noise_aa, noise_ab = noise_moments(dataset, ts, span, noise, measured=(a, b))
         coef = sparse_regression(a, b, threshold, alpha, noise_aa=noise_aa, noise_ab=noise_ab)
         meta["method"] = "backbone (integral-form STLSQ over Θ, regressor-noise bias compensated)"
         meta["noise_std"] = dict(zip(dataset.state_names, np.round(noise, 8).tolist()))
