@@ -11,13 +11,14 @@ from pisml_ros.data import read_dataset, write_dataset
 from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
 from pisml_ros.ident.backbone import fit_backbone, noise_moments, sparse_regression
 from pisml_ros.ident.library import coupling_separation, physics_library
+from pisml_ros.ident.trajfit import backward_elimination
 from pisml_ros.model import ExplicitModel
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
 
 # a small, fast PISML configuration: the pipeline end to end in seconds
 FAST = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
-        "refine_rounds": 0, "distill_max_terms": 2}
+        "distill_max_terms": 2}
 
 
 @pytest.fixture(scope="module")
@@ -47,8 +48,12 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"epochs": 0})
     with pytest.raises(ConfigError, match="dropout = 'x'"):
         IdentConfig.from_mapping({"dropout": "x"})
-    cfg = IdentConfig.from_mapping({"epochs": "7", "hidden": "32,16", "refine": "false"})
+    with pytest.raises(ConfigError, match="refine_prune_budgets must be >= 0"):
+        IdentConfig.from_mapping({"refine_prune_budgets": [0.01, -1]})
+    cfg = IdentConfig.from_mapping({"epochs": "7", "hidden": "32,16", "refine": "false",
+                                    "refine_prune_budgets": "0.002,0.02"})
     assert cfg.epochs == 7 and cfg.hidden == (32, 16) and cfg.refine is False
+    assert cfg.refine_prune_budgets == (0.002, 0.02)
     path = tmp_path / "ident.yaml"
     path.write_text("identification:\n  epochs: 9\n  roles:\n    angle: delta\n")
     assert IdentConfig.load(path, {"window": 5}).epochs == 9
@@ -122,6 +127,26 @@ def test_noise_moments_match_the_noise_level(train):
     # (0.5·dt), so their correlations cancel
     il = train.state_names.index("il_d")
     assert abs(noise_ab[1, il]) < 0.1 * np.sqrt(noise_aa[1, 1] * rows * 2 * 0.01 ** 2)
+
+
+def test_backward_elimination_drops_collinear_spurious_terms():
+    # y = 2 a0 - a2 + 3 a5; a1, a3, a4 are near copies of the true columns plus a little noise
+    rng = np.random.default_rng(4)
+    base = rng.standard_normal((400, 3))
+    a = np.column_stack([base[:, 0], base[:, 0] + 0.05 * rng.standard_normal(400), base[:, 1],
+                         base[:, 1] + base[:, 2] + 0.05 * rng.standard_normal(400),
+                         0.3 * rng.standard_normal(400), base[:, 2]])
+    y = a @ np.array([2.0, 0, -1.0, 0, 0, 3.0]) + 1e-3 * rng.standard_normal(400)
+    full = np.linalg.lstsq(a, y, rcond=None)[0][:, None]
+    cost = 0.5 * np.sum((a @ full[:, 0] - y) ** 2)
+    small, large = backward_elimination(full, a.T @ a, np.arange(6), [0.5 * cost, 1e9 * cost])
+    rise, coef = small
+    assert np.flatnonzero(coef[:, 0]).tolist() == [0, 2, 5]
+    # the kept coefficients are the least-squares refit on that support (exact for a quadratic cost)
+    refit = np.linalg.lstsq(a[:, [0, 2, 5]], y, rcond=None)[0]
+    np.testing.assert_allclose(coef[[0, 2, 5], 0], refit, rtol=1e-8)
+    np.testing.assert_allclose(rise, 0.5 * np.sum((a[:, [0, 2, 5]] @ refit - y) ** 2) - cost, rtol=1e-6)
+    assert np.count_nonzero(large[1]) < 3
 
 
 def test_couplings_are_kept_only_where_the_data_separate_them(plant, train):

@@ -83,12 +83,26 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
                          "smallsignal_trajectories": len(smallsignal) if smallsignal is not None else 0}}
 
 
-def _selected(template: ExplicitModel, candidates: dict, scores: dict) -> ExplicitModel:
-    """The candidate with the smallest training error, with ``template``'s metadata and the selection."""
-    chosen = min(scores, key=lambda name: scores[name])
+def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0) -> ExplicitModel:
+    """The candidate with the smallest training error, with ``template``'s metadata and the selection.
+
+    When that is the refined model or one of its pruned sub-models (names ``pruned …``), the
+    sparsest pruned one within ``tolerance`` (relative) of the smallest error takes its place: the
+    data barely tell it apart from the best, and a term the data cannot support is a liability out
+    of distribution. (Where another candidate wins, pruning is not considered: on noisy data a
+    refinement that lost should not come back through a tolerance.)
+    """
+    best = min(scores, key=lambda name: scores[name])
+    chosen = best
+    if best == "refined" or best.startswith("pruned"):
+        near = [name for name in scores
+                if name.startswith("pruned") and scores[name] <= scores[best] * (1 + tolerance)]
+        chosen = min(near, key=lambda name: (candidates[name].n_parameters, scores[name])) if near else best
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
-    model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores)}
+    model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores),
+                                   "nonzero": {name: int(c.n_parameters) for name, c in candidates.items()},
+                                   "tolerance": tolerance}
     return model
 
 
@@ -249,11 +263,12 @@ class PISML(_Estimator):
             candidates.update(refined)
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the training records when run
-        # freely from their first samples: refinement or pruning that made things worse is dropped
+        # freely from their first samples (refinement that made things worse is dropped), or the
+        # sparsest pruned refinement nearly as good
         scores.update({name: training_error(model, train) for name, model in candidates.items()
                        if name not in scores})
         self.candidates_ = candidates
-        explicit = _selected(explicit, candidates, scores)
+        explicit = _selected(explicit, candidates, scores, tolerance=cfg.selection_tolerance)
         self.metrics_["training_error_pct"] = scores[explicit.metadata["selection"]["chosen"]]
         self._emit("selection", 0.99, losses={f"train_err_{k.replace(' ', '_')}": v for k, v in scores.items()})
         explicit.metadata["stage"] = "explicit"
@@ -326,7 +341,11 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                     progress: Callable[[float, dict], None] | None = None, start_error: float | None = None,
                     errors: dict | None = None) -> dict:
     """Multiple-shooting least-squares refinement of the nonzero coefficients of ``model``, then
-    rounds of pruning the coefficients the data do not support (|t| < refine_prune_t) and refitting.
+    sparser models by backward elimination on the refinement's quadratic cost model.
+
+    Each budget ``b`` of ``cfg.refine_prune_budgets`` gives the sparsest model whose predicted
+    refinement cost is at most (1 + b)× the refined one's (:func:`~.trajfit.backward_elimination`;
+    no further integration). The caller selects among them on free-run training error.
 
     Parameters
     ----------
@@ -338,10 +357,10 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     Returns
     -------
     dict
-        ``{"refined": model, "pruned 1": model, ...}``: every round's model (the caller selects).
+        ``{"refined": model, "pruned +0.1 %": model, ...}`` (the caller selects).
     """
     from .noise import estimate_noise_std
-    from .trajfit import TrajectoryFitter
+    from .trajfit import TrajectoryFitter, backward_elimination
 
     signals = tuple(model.state_names) + tuple(model.input_names)
     noise = estimate_noise_std(train)
@@ -349,64 +368,49 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     weights = 1.0 / np.maximum(noise, 1e-4 * spread + 1e-12)
     fitter = TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=cfg.refine_window,
                               substeps=2, weights=weights, max_windows=cfg.refine_max_windows)
-    coef = model.coefficients.copy()
-    mask = coef != 0
-    rounds = 1 + cfg.refine_rounds
     if start_error is None:
         start_error = training_error(model, train)
-    out = {}
-    for r in range(rounds):
-        def on_evaluation(nfev, cost, r=r):
-            if progress:
-                progress((r + min(nfev / max(cfg.refine_max_nfev, 1), 1.0)) / rounds,
-                         {"refine_cost": cost, "nonzero": int(mask.sum()), "round": r})
+    errors = {} if errors is None else errors
+    last_check: dict = {}
 
-        last_check: dict = {}
+    def on_evaluation(nfev, cost):
+        if progress:
+            progress(min(nfev / max(cfg.refine_max_nfev, 1), 1.0),
+                     {"refine_cost": cost, "nonzero": int(np.count_nonzero(model.coefficients))})
 
-        def improving(c, r=r):
-            # round 0 only: stop early when the free-run error of the training records has not gone
-            # below the start model's (noisy data: a far-off start can make the refinement diverge)
-            if r > 0:
-                return True
-            last_check["error"] = training_error(ExplicitModel(model.state_names, model.input_names,
-                                                               model.terms, c), train)
-            return last_check["error"] < start_error
+    def improving(c):
+        # stop early when the free-run error of the training records has not gone below the start
+        # model's (noisy data: a far-off start can make the refinement diverge)
+        last_check["error"] = training_error(ExplicitModel(model.state_names, model.input_names, model.terms, c),
+                                             train)
+        return last_check["error"] < start_error
 
-        try:
-            result = fitter.fit(coef, mask, train, smallsignal, lambda_jac=1.0 if smallsignal is not None else 0.0,
-                                max_nfev=cfg.refine_max_nfev, on_evaluation=on_evaluation, keep_going=improving)
-        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
-            # a refinement that breaks down (a window blowing up) leaves the earlier candidates standing
-            model.metadata.setdefault("refinement_errors", []).append(f"round {r}: {type(err).__name__}: {err}")
-            break
-        coef = result.coefficients
-        meta = dict(model.metadata)
-        meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds, "round": r,
-                              "abandoned": result.abandoned}
-        candidate = ExplicitModel(model.state_names, model.input_names, model.terms, coef.copy(), meta)
-        out["refined" if r == 0 else f"pruned {r}"] = candidate
-        if result.abandoned:
-            if errors is not None and r == 0:
-                errors["refined"] = last_check["error"]  # the abandoned point is the one just checked
-            model.metadata.setdefault("refinement_notes", []).append(
-                f"round {r}: abandoned after {result.nfev} evaluations (training error not improving)")
-            break
-        if r == rounds - 1 or cfg.refine_prune_t <= 0:
-            break
-        if r == 0:
-            errors = {} if errors is None else errors
-            errors["refined"] = training_error(candidate, train)
-        if r == 0 and errors["refined"] > start_error:
-            # refinement from this start went astray (noisy data, far-off fast modes): pruning its
-            # t-values would only compound that, and costs as much again
-            model.metadata.setdefault("refinement_errors", []).append(
-                "round 0 did not improve the training error; pruning skipped")
-            break
-        weak = mask & ~(result.t_values >= cfg.refine_prune_t)
-        if not weak.any():
-            break
-        mask = mask & ~weak
-        coef = np.where(mask, coef, 0.0)
+    try:
+        result = fitter.fit(model.coefficients.copy(), model.coefficients != 0, train, smallsignal,
+                            lambda_jac=1.0 if smallsignal is not None else 0.0, max_nfev=cfg.refine_max_nfev,
+                            on_evaluation=on_evaluation, keep_going=improving)
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
+        # a refinement that breaks down (a window blowing up) leaves the earlier candidates standing
+        model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
+        return {}
+    meta = dict(model.metadata)
+    meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds,
+                          "abandoned": result.abandoned}
+    out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients, meta)}
+    if result.abandoned:
+        errors["refined"] = last_check["error"]  # the abandoned point is the one just checked
+        model.metadata.setdefault("refinement_notes", []).append(
+            f"abandoned after {result.nfev} evaluations (training error not improving)")
+        return out
+    budgets = tuple(cfg.refine_prune_budgets)
+    if budgets and result.hessian is not None:
+        pruned = backward_elimination(result.coefficients, result.hessian, result.support,
+                                      [b * result.cost for b in budgets])
+        for budget, (rise, coef) in zip(budgets, pruned):
+            name = f"pruned +{100 * budget:g} %"
+            out[name] = ExplicitModel(model.state_names, model.input_names, model.terms, coef,
+                                      {**meta, "pruning": {"budget": budget,
+                                                           "predicted_cost_rise": rise / max(result.cost, 1e-300)}})
     return out
 
 

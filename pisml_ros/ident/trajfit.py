@@ -12,6 +12,9 @@ region) with Jacobians from torch forward-mode autodiff (``torch.func.jacfwd``):
   must reproduce the measured deviation Δx(t) over the whole record (exact
   zero-order-hold discretisation by matrix exponential). This is what pins the
   slow droop/power modes that 40 ms trajectories cannot.
+
+The fit also returns the Gauss-Newton Hessian of its cost (window starts profiled out), from
+which :func:`backward_elimination` derives sparser models without integrating again.
 Hand-written because no library fits ODE coefficients through an integrator
 with these two residual kinds; scipy provides the solver, torch the derivatives.
 """
@@ -36,8 +39,11 @@ class FitResult:
     cost: float
     nfev: int
     seconds: float
-    t_values: np.ndarray  # coefficient / standard error (support entries), nan where undetermined
     abandoned: bool = False  # stopped early because ``keep_going`` said the fit was not improving
+    # Gauss-Newton Hessian of the cost in the support coefficients (``support``: flat indices into the
+    # coefficient matrix), the window start states profiled out; for pruning (:func:`backward_elimination`)
+    hessian: np.ndarray | None = None
+    support: np.ndarray | None = None
 
 
 class _Abandon(Exception):
@@ -261,21 +267,78 @@ class TrajectoryFitter:
         except _Abandon as stop:
             r = residual_vector(stop.params)
             return FitResult(to_coefficients(stop.params), float(0.5 * r @ r), calls[0], time.monotonic() - started,
-                             np.full(coef0.shape, np.nan), abandoned=True)
+                             abandoned=True)
         coef = to_coefficients(result.x).ravel()
-        # standard errors from the Gauss-Newton approximation, for pruning
-        t_values = np.full(coef0.size, np.nan)
-        try:
-            # coefficient block only (start states treated as known): an approximation, good for ranking
-            jcoef = result.jac[:, :n_c]
-            jcoef = jcoef.toarray() if scipy.sparse.issparse(jcoef) else jcoef
-            jtj = jcoef.T @ jcoef
-            dof = max(result.fun.size - jtj.shape[0], 1)
-            s2 = 2 * result.cost / dof
-            cov = np.linalg.pinv(jtj, rcond=1e-12) * s2
-            se = np.sqrt(np.clip(np.diag(cov)[:n_c], 1e-300, None)) * scale
-            t_values[idx] = np.abs(coef[idx]) / se
-        except np.linalg.LinAlgError:
-            pass
+        hessian = _profiled_hessian(result.jac, n_c) / np.outer(scale, scale)
         return FitResult(coef.reshape(coef0.shape), float(result.cost), int(result.nfev),
-                         time.monotonic() - started, t_values.reshape(coef0.shape))
+                         time.monotonic() - started, hessian=hessian, support=idx)
+
+
+def _profiled_hessian(jac, n_c: int) -> np.ndarray:
+    """JᵀJ of the first ``n_c`` parameters with the others (window start states) minimised out
+    (Schur complement): the curvature of the cost when the starts re-adjust to a coefficient change."""
+    jac = jac.toarray() if scipy.sparse.issparse(jac) else np.asarray(jac)
+    jc, jx = jac[:, :n_c], jac[:, n_c:]
+    h_cc, h_cx, h_xx = jc.T @ jc, jc.T @ jx, jx.T @ jx
+    if h_xx.size == 0:
+        return h_cc
+    return h_cc - h_cx @ np.linalg.lstsq(h_xx, h_cx.T, rcond=1e-12)[0]
+
+
+def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support: np.ndarray,
+                         budgets) -> list[tuple[float, np.ndarray]]:
+    """Sparser models from a fitted one by greedy backward elimination on its quadratic cost model.
+
+    Repeatedly drops the support coefficient whose removal (the others re-fitted through the
+    Hessian, no new integration) raises the cost least, while the total predicted rise stays
+    within each budget. Near-collinear groups (common in these libraries) lose their spurious
+    members one at a time, which a one-shot |t| threshold cannot do.
+
+    Parameters
+    ----------
+    coefficients : ndarray
+        The fitted coefficient matrix (a cost minimum).
+    hessian : ndarray, shape (n_support, n_support)
+        Gauss-Newton Hessian of the cost in the support coefficients (:attr:`FitResult.hessian`).
+    support : ndarray of int
+        Flat indices of the support coefficients.
+    budgets : sequence of float
+        Allowed predicted cost rises (absolute, in cost units).
+
+    Returns
+    -------
+    list of (predicted rise, coefficients)
+        One model per budget (the sparsest that stays within it), in the order of ``budgets``.
+    """
+    # in Jacobi-scaled units (coefficients span many decades); the elimination is invariant to it
+    d = np.sqrt(np.clip(np.diag(hessian), 1e-300, None))
+    beta = coefficients.ravel()[support].astype(float) * d
+    h_inv = np.linalg.pinv(hessian / np.outer(d, d), rcond=1e-12, hermitian=True)
+    alive = np.ones(beta.size, dtype=bool)
+    rise = 0.0
+    path = [(0.0, beta.copy(), alive.copy())]
+    while alive.sum() > 1:
+        live = np.flatnonzero(alive)
+        diag = np.diag(h_inv)[live]
+        with np.errstate(over="ignore", divide="ignore"):  # a pinned coefficient: infinite cost, never dropped
+            cost_up = np.where(diag > 0, 0.5 * beta[live] ** 2 / np.maximum(diag, 1e-300), np.inf)
+        k = int(np.argmin(cost_up))
+        j = live[k]
+        if not np.isfinite(cost_up[k]):
+            break
+        rise += float(cost_up[k])
+        # drop j: the constrained minimum of the quadratic model, and H⁻¹ restricted to the rest
+        beta = beta - h_inv[:, j] * (beta[j] / h_inv[j, j])
+        h_inv = h_inv - np.outer(h_inv[:, j], h_inv[j, :]) / h_inv[j, j]
+        beta[j] = 0.0
+        h_inv[j, :] = 0.0
+        h_inv[:, j] = 0.0
+        alive[j] = False
+        path.append((rise, beta.copy(), alive.copy()))
+    out = []
+    for budget in budgets:
+        best = max((p for p in path if p[0] <= budget), key=lambda p: (-p[2].sum(), -p[0]))
+        flat = np.zeros(coefficients.size)
+        flat[support] = np.where(best[2], best[1] / d, 0.0)
+        out.append((best[0], flat.reshape(coefficients.shape)))
+    return out

@@ -15,35 +15,6 @@ MODEL_TOPIC = "/pisml/model"
 STABILITY_TOPIC = "/pisml/stability"
 
 
-def _glibc():
-    """The C library when it is glibc (its malloc tuning calls), else None."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        return libc if hasattr(libc, "malloc_trim") and hasattr(libc, "mallopt") else None
-    except (OSError, AttributeError):
-        return None
-
-
-def limit_malloc_arenas(arenas: int = 2) -> None:
-    """Cap glibc's malloc arenas: each training thread otherwise gets arenas of its own that keep
-    their peak size after it ends, and a node that trains again and again grows (no-op off glibc)."""
-    libc = _glibc()
-    if libc is not None:
-        libc.mallopt(-8, int(arenas))  # M_ARENA_MAX
-
-
-def release_freed_memory() -> None:
-    """Hand memory freed by a finished training run back to the OS (glibc ``malloc_trim``)."""
-    import gc
-
-    gc.collect()
-    libc = _glibc()
-    if libc is not None:
-        libc.malloc_trim(0)
-
-
 def measurement_qos(depth: int = 5000) -> QoSProfile:
     """Reliable with a deep queue: identification must not lose samples."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,

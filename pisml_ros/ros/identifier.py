@@ -3,7 +3,9 @@
 Assembles MeasurementBatch messages into trajectories (gaps, reordering and
 restarts handled by :class:`~pisml_ros.data.stream.TrajectoryBuffer`; malformed
 batches are rejected with a diagnostic and the node keeps running). Training
-runs in a worker thread (the executor never blocks): automatically once
+runs in a child process (:class:`~pisml_ros.ident.worker.IdentificationWorker`, started warm
+ahead of time and replaced after every run, so the node's memory stays flat), watched by a
+thread (the executor never blocks): automatically once
 ``min_trajectories`` complete trajectories are buffered (``retrain_policy``:
 ``once`` | ``on_new_data`` | ``manual``), or on request through the
 ``~/identify`` action (data source "buffer" or a CSV/bag path, method,
@@ -21,7 +23,6 @@ progress, the latest losses and the last error.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import queue
@@ -29,8 +30,8 @@ import threading
 import time
 from pathlib import Path
 
-from .common import MEASUREMENT_TOPIC, MODEL_TOPIC, declare, latched_qos, limit_malloc_arenas, measurement_qos, \
-    publish_diagnostics, release_freed_memory, run_node, status
+from .common import MEASUREMENT_TOPIC, MODEL_TOPIC, declare, latched_qos, measurement_qos, publish_diagnostics, \
+    run_node, status
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from pisml_msgs.action import Identify  # noqa: E402
@@ -43,6 +44,7 @@ from ..data import DataError, read_dataset, validate_batch  # noqa: E402
 from ..data.stream import TrajectoryBuffer  # noqa: E402
 from ..fileio import atomic_write_text, json_default  # noqa: E402
 from ..ident import IdentConfig  # noqa: E402
+from ..ident.worker import IdentificationWorker, RunResult  # noqa: E402
 from ..model import ExplicitModel  # noqa: E402
 from .conversions import model_message, overrides_from_assignments, overrides_from_fields  # noqa: E402
 
@@ -51,7 +53,7 @@ STOP_TIMEOUT = 20.0  # s to wait for a running identification to stop when the n
 
 
 class Job:
-    """One identification run in the worker thread."""
+    """One identification run (a child process, watched by a thread of this node)."""
 
     def __init__(self, run: int, method: str, config: IdentConfig, data, origin: str, goal_handle=None):
         self.run, self.method, self.config, self.data, self.origin = run, method, config, data, origin
@@ -72,34 +74,6 @@ class Job:
         return self.stop.is_set() or (handle is not None and handle.is_cancel_requested)
 
 
-def _import_engine_libraries() -> None:
-    """Import torch, torchdiffeq and pysindy now: cold, they take ~2.5 s on 2 cores, which the
-    first training run would otherwise pay before its backbone model goes out."""
-    import pysindy  # noqa: F401
-    import torch  # noqa: F401
-    import torch.func  # noqa: F401
-    import torchdiffeq  # noqa: F401
-
-
-@contextlib.contextmanager
-def _thread_limits(threads: int):
-    """At most ``threads`` threads in torch's and the BLAS pools while training."""
-    import torch
-
-    try:
-        from threadpoolctl import threadpool_limits
-        blas = threadpool_limits(limits=threads)
-    except ImportError:  # BLAS pools keep their size
-        blas = contextlib.nullcontext()
-    previous = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        with blas:
-            yield
-    finally:
-        torch.set_num_threads(previous)
-
-
 def _message_stage(engine_stage: str, model) -> str:
     if isinstance(model, ExplicitModel):
         return "backbone" if engine_stage == "backbone" else "explicit"
@@ -109,7 +83,6 @@ def _message_stage(engine_stage: str, model) -> str:
 class IdentifierNode(Node):
     def __init__(self):
         super().__init__("identifier")
-        limit_malloc_arenas()
         from ..ident import METHODS
 
         self.min_trajectories = declare(self, "min_trajectories", 12,
@@ -165,7 +138,8 @@ class IdentifierNode(Node):
         self.max_history = 5000
         self._last_diag = 0.0
 
-        _import_engine_libraries()  # before subscribing: a publisher that waits for subscribers starts into a warm node
+        # the first run's process is started (and imports the engine, ~2.5 s) now, not when data arrive
+        self.worker: IdentificationWorker | None = IdentificationWorker(self.training_threads)
         self.model_pub = self.create_publisher(IdentifiedModel, MODEL_TOPIC, latched_qos())
         self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(MeasurementBatch, MEASUREMENT_TOPIC, self._on_batch, measurement_qos(depth))
@@ -229,63 +203,74 @@ class IdentifierNode(Node):
         job.thread.start()
         return job
 
+    def _take_worker(self) -> IdentificationWorker:
+        with self.lock:
+            worker, self.worker = self.worker, None
+        return worker if worker is not None else IdentificationWorker(self.training_threads)
+
     def _run_job(self, job: Job):
-        from ..ident import IdentificationCancelled, make_estimator
-
         started = time.monotonic()
-
-        def callback(update):
-            if job.stop.is_set():
-                return  # shutting down: the publishers may be gone
-            job.stage, job.progress, job.epoch = update.stage, float(update.progress), int(update.epoch)
-            job.losses = {k: float(v) for k, v in update.losses.items() if _is_number(v)}
-            del self.history[:-(self.max_history - 1)]  # a node retraining for days keeps its recent curves
-            self.history.append({"run": job.model_id, "t": round(time.monotonic() - started, 3),
-                                 "stage": update.stage, "progress": job.progress, "epoch": job.epoch,
-                                 "losses": job.losses})
-            if job.goal_handle is not None:
-                job.feedback.put((update.stage, job.progress, job.epoch, dict(job.losses)))
-            if update.model is not None and update.stage != "explicit":  # the final one goes out with all metrics
-                stage = _message_stage(update.stage, update.model)
-                metrics = dict(job.losses, progress=job.progress, seconds=time.monotonic() - started)
-                self._publish_model(update.model, stage, job.model_id, metrics)
-                self._save_history(None)
-            if time.monotonic() - self._last_diag > 0.5:
-                self._publish_diagnostics()
-
+        worker = self._take_worker()
+        result = RunResult("failed", error="no result")
         try:
-            estimator = make_estimator(job.method, job.config)
-            with _thread_limits(self.training_threads):
-                estimator.fit(job.data, self.smallsignal, callback=callback, should_stop=job.should_stop)
-            final = estimator.explicit_model_ if estimator.explicit_model_ is not None else estimator.model_
-            metrics = {k: v for k, v in estimator.metrics_.items() if _is_number(v)}
+            worker.submit(job.method, job.config, job.data, self.smallsignal)
+            for item in worker.results(should_stop=job.should_stop):
+                if isinstance(item, RunResult):
+                    result = item
+                    break
+                if job.stop.is_set():
+                    break  # shutting down: the publishers may be gone, the result is not wanted
+                self._on_update(job, item, started)
+        except Exception as err:  # the job's data could not be sent, ...: reported, never kills the node
+            result = RunResult("failed", error=f"{type(err).__name__}: {err}")
+        finally:
+            worker.close(timeout=5.0 if job.stop.is_set() else 10.0)  # its memory goes back to the OS
+            if not job.stop.is_set():
+                with self.lock:
+                    if self.worker is None:
+                        self.worker = IdentificationWorker(self.training_threads)  # warm for the next run
+        if job.stop.is_set():
+            job.done.set()
+            return  # the node is shutting down: nothing to publish or start
+        if result.status == "done":
+            metrics = dict(result.metrics)
             metrics.update(final=1.0, train_trajectories=len(job.data), train_samples=job.data.n_samples,
                            wall_seconds=time.monotonic() - started)
-            stage = _message_stage("explicit", final)
-            job.result = self._publish_model(final, stage, job.model_id, metrics)
+            stage = _message_stage("explicit", result.model)
+            job.result = self._publish_model(result.model, stage, job.model_id, metrics)
             job.metrics = metrics
             job.stage, job.progress = "done", 1.0
-            self._save_history(estimator)
+            self._save_history(result)
             self.get_logger().info(f"run {job.model_id} done in {time.monotonic() - started:.1f} s: {stage} model, "
                                    f"{job.result.n_parameters} parameters")
-        except IdentificationCancelled as err:
-            if job.stop.is_set():
-                return
+        elif result.status == "cancelled" or (job.should_stop() and result.status == "failed"):
             job.cancelled, job.stage = True, "cancelled"
-            self.get_logger().info(f"run {job.model_id}: {err}")
-        except Exception as err:  # a failed run is reported, never kills the node
-            job.error = f"run {job.model_id} failed: {type(err).__name__}: {err}"
+            self.get_logger().info(f"run {job.model_id}: {result.error or 'cancelled'}")
+        else:
+            job.error = f"run {job.model_id} failed: {result.error}"
             job.stage = "failed"
             self.last_error = job.error
             self.get_logger().error(job.error)
-        finally:
-            estimator = None  # noqa: F841 (the run's models and tensors go before the trim)
-            release_freed_memory()  # before done: the next run must not start while this one trims
-            job.done.set()
-        if job.stop.is_set():
-            return  # the node is shutting down: nothing to publish or start
+        job.done.set()
         self._publish_diagnostics()
         self._maybe_train()  # data that arrived meanwhile
+
+    def _on_update(self, job: Job, update, started: float):
+        job.stage, job.progress, job.epoch = update.stage, float(update.progress), int(update.epoch)
+        job.losses = {k: float(v) for k, v in update.losses.items() if _is_number(v)}
+        del self.history[:-(self.max_history - 1)]  # a node retraining for days keeps its recent curves
+        self.history.append({"run": job.model_id, "t": round(time.monotonic() - started, 3),
+                             "stage": update.stage, "progress": job.progress, "epoch": job.epoch,
+                             "losses": job.losses})
+        if job.goal_handle is not None:
+            job.feedback.put((update.stage, job.progress, job.epoch, dict(job.losses)))
+        if update.model is not None and update.stage != "explicit":  # the final one goes out with all metrics
+            stage = _message_stage(update.stage, update.model)
+            metrics = dict(job.losses, progress=job.progress, seconds=time.monotonic() - started)
+            self._publish_model(update.model, stage, job.model_id, metrics)
+            self._save_history(None)
+        if time.monotonic() - self._last_diag > 0.5:
+            self._publish_diagnostics()
 
     def _publish_model(self, model, stage: str, model_id: str, metrics: dict) -> IdentifiedModel:
         msg = model_message(model, stage, model_id, metrics, self.get_clock().now().to_msg())
@@ -302,13 +287,13 @@ class IdentifierNode(Node):
                 self.get_logger().error(self.last_error)
         return msg
 
-    def _save_history(self, estimator):
+    def _save_history(self, result: RunResult | None):
         if not self.output_dir:
             return
         data = {"updates": list(self.history)}
-        if estimator is not None:
-            data["training"] = getattr(estimator, "history_", {})
-            data["metrics"] = getattr(estimator, "metrics_", {})
+        if result is not None:
+            data["training"] = result.history
+            data["metrics"] = result.metrics
         try:
             atomic_write_text(Path(self.output_dir) / "history.json", json.dumps(data, default=_json_any) + "\n")
         except OSError as err:
@@ -413,17 +398,13 @@ class IdentifierNode(Node):
     def destroy_node(self):
         job = self.job
         if job is not None and not job.done.is_set():
-            # stop the run first: a training thread alive at interpreter exit aborts the process (torch)
-            job.stop.set()
+            job.stop.set()  # the watcher cancels the run and closes its process (terminated if it hangs)
             self.get_logger().info(f"stopping run {job.model_id} ...")
             job.thread.join(STOP_TIMEOUT)
-            if job.thread.is_alive():
-                self.get_logger().warning(f"run {job.model_id} did not stop within {STOP_TIMEOUT:g} s; exiting anyway")
-                super().destroy_node()
-                import rclpy
-
-                rclpy.try_shutdown()
-                os._exit(0)
+        with self.lock:
+            worker, self.worker = self.worker, None
+        if worker is not None:
+            worker.close(timeout=2.0)
         super().destroy_node()
 
 
