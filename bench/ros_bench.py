@@ -8,7 +8,8 @@ trains while the link runs) and the analyser as separate processes on loopback D
 subscriber in this process counts every sample and its latency (header stamp → arrival), checks
 that each trajectory's samples arrive without gaps, and times the stages: 12th trajectory
 complete → backbone / hybrid / explicit model on /pisml/model → StabilityReport. Node memory
-(VmRSS) is sampled every second. Prints the figures and writes them to the results JSON.
+(VmRSS) is sampled every second; for the identifier also with its child processes (the training
+process of the current run and the warm one for the next), as ``identifier+children``. Prints the figures and writes them to the results JSON.
 """
 from __future__ import annotations
 
@@ -36,6 +37,20 @@ def rss_mb(pid: int) -> float:
     except OSError:
         pass
     return float("nan")
+
+
+def children(pid: int) -> list[int]:
+    """Direct child processes of ``pid`` (the identifier's training process)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(entry.name))
+    return out
 
 
 def main(argv=None) -> int:
@@ -130,6 +145,9 @@ analyser:
             if now >= next_sample:
                 for name, proc in procs.items():
                     memory[name].append((now - t0, rss_mb(proc.pid)))
+                    if name == "identifier":
+                        memory.setdefault("identifier+children", []).append(
+                            (now - t0, rss_mb(proc.pid) + float(np.nansum([rss_mb(c) for c in children(proc.pid)]))))
                 next_sample = now + 1.0
             if any(p.poll() is not None for p in procs.values()):
                 raise SystemExit(f"a node exited early; logs in {work}")

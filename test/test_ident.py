@@ -48,6 +48,8 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"epochs": 0})
     with pytest.raises(ConfigError, match="dropout = 'x'"):
         IdentConfig.from_mapping({"dropout": "x"})
+    with pytest.raises(ConfigError, match="device must be cpu, auto or cuda.*'gpu'"):
+        IdentConfig.from_mapping({"device": "gpu"})
     with pytest.raises(ConfigError, match="refine_prune_budgets must be >= 0"):
         IdentConfig.from_mapping({"refine_prune_budgets": [0.01, -1]})
     cfg = IdentConfig.from_mapping({"epochs": "7", "hidden": "32,16", "refine": "false",
@@ -230,6 +232,18 @@ def test_fit_can_be_cancelled(train, small):
 
     with pytest.raises(IdentificationCancelled):
         make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(train, small, should_stop=should_stop)
+
+
+def test_training_device_resolves_and_names_what_is_missing():
+    import torch
+
+    from pisml_ros.ident.neural import resolve_device
+
+    assert resolve_device("cpu") == "cpu"
+    assert resolve_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="'cuda'.*no CUDA GPU"):
+            resolve_device("cuda")
 
 
 def test_unknown_method_is_named():

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -43,6 +44,9 @@ class IdentConfig:
     solver: str = "rk4"
     substeps: int = 1
     adjoint: bool = False
+    # where the hybrid trains (torch device): cpu | auto (a CUDA GPU if torch sees one) | cuda[:N];
+    # the rest of the pipeline runs on the CPU
+    device: str = "cpu"
     lambda_pert: float = 1.0
     lambda_sparse: float = 1e-6
     seed: int = 0
@@ -127,6 +131,8 @@ class IdentConfig:
                     "distill_threshold", "distill_spread", "refine_max_nfev", "selection_tolerance"]:
             if getattr(self, key) < 0:
                 raise ConfigError(f"identification config: {key} must be >= 0, got {getattr(self, key)}")
+        if not re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.device):
+            raise ConfigError(f"identification config: device must be cpu, auto or cuda[:N], got {self.device!r}")
         if any(b < 0 for b in self.refine_prune_budgets):
             raise ConfigError(f"identification config: refine_prune_budgets must be >= 0, got "
                               f"{list(self.refine_prune_budgets)}")

@@ -288,7 +288,7 @@ def _noisy(train: Dataset, level: float = 1e-5) -> bool:
 
 def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: ExplicitModel | None, lambda_pert: float):
     """Build and train a HybridField (backbone optional) with the estimator's config."""
-    from .neural import StopRequested, build_modules, train_hybrid
+    from .neural import StopRequested, build_modules, resolve_device, train_hybrid
 
     cfg = est.config
     residual_cls, hybrid_cls = build_modules()
@@ -308,6 +308,10 @@ def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: Explici
         field = hybrid_cls(None, signals, n_x, mlp=mlp)
     state_scale = z[:, :n_x].std(axis=0) + 1e-9
 
+    device = resolve_device(cfg.device)
+    est.training_device_ = device
+    est.metrics_["training_on_gpu"] = float(device.startswith("cuda"))
+
     def progress(epoch, losses):
         if epoch % 5 == 0 or epoch == cfg.epochs - 1:
             est._emit("training", min(0.6, 0.05 + 0.55 * (epoch + 1) / cfg.epochs), epoch=epoch, losses=losses)
@@ -317,7 +321,8 @@ def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: Explici
                                batch_windows=cfg.batch_windows, learning_rate=cfg.learning_rate,
                                lambda_pert=lambda_pert, lambda_sparse=cfg.lambda_sparse if backbone else 0.0,
                                solver=cfg.solver, substeps=cfg.substeps, adjoint=cfg.adjoint, seed=cfg.seed,
-                               state_scale=state_scale, callback=progress, should_stop=est._should_stop)
+                               state_scale=state_scale, callback=progress, should_stop=est._should_stop,
+                               device=device)
     except StopRequested:
         raise IdentificationCancelled(f"{est.method}: cancelled during training") from None
     est.history_["training"] = history.to_dict()

@@ -145,7 +145,7 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
                  batch_windows: int, learning_rate: float, lambda_pert: float, lambda_sparse: float,
                  solver: str = "rk4", substeps: int = 2, adjoint: bool = False, seed: int = 0,
                  state_scale=None, callback: Callable | None = None,
-                 should_stop: Callable[[], bool] | None = None) -> TrainingHistory:
+                 should_stop: Callable[[], bool] | None = None, device: str = "cpu") -> TrainingHistory:
     """Train ``field`` (a HybridField) through torchdiffeq on windows of ``train``.
 
     Parameters
@@ -156,23 +156,59 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
         Called after every epoch.
     should_stop : callable() -> bool
         Polled every epoch; raises :class:`StopRequested` when it returns True.
+    device : str
+        torch device to train on (``cpu``, ``cuda``, ``cuda:1``, ...); the field is back on the
+        CPU when this returns (or raises).
     """
     torch = _torch()
-    import torchdiffeq
-
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     xw, uw = trajectory_windows(train, window, stride=max(window // 2, 1))
-    X, U = torch.as_tensor(xw), torch.as_tensor(uw)
+    device = torch.device(device)
+    X, U = torch.as_tensor(xw, device=device), torch.as_tensor(uw, device=device)
     dt = float(train.dt)
     field.dt = dt
-    t_grid = torch.arange(window + 1, dtype=torch.float64) * dt
-    scale = torch.as_tensor(state_scale if state_scale is not None else xw.reshape(-1, xw.shape[-1]).std(axis=0) + 1e-9)
-    ss = [tuple(torch.as_tensor(a) if isinstance(a, np.ndarray) else a for a in p) for p in smallsignal_pairs(smallsignal)]
+    t_grid = torch.arange(window + 1, dtype=torch.float64, device=device) * dt
+    scale_np = np.asarray(state_scale if state_scale is not None else xw.reshape(-1, xw.shape[-1]).std(axis=0) + 1e-9)
+    scale = torch.as_tensor(scale_np, device=device)
+    ss = [tuple(torch.as_tensor(a, device=device) if isinstance(a, np.ndarray) else a for a in p)
+          for p in smallsignal_pairs(smallsignal)]
     params = [p for p in field.parameters() if p.requires_grad]
     history = TrainingHistory()
     if not params:
         return history
+    field.to(device)
+    try:
+        _fit_epochs(field, X, U, t_grid, scale, scale_np, ss, xw, uw, params, history, epochs=epochs,
+                    batch_windows=batch_windows, learning_rate=learning_rate, lambda_pert=lambda_pert,
+                    lambda_sparse=lambda_sparse, solver=solver, substeps=substeps, adjoint=adjoint, rng=rng,
+                    callback=callback, should_stop=should_stop)
+    finally:
+        field.u_seq = None
+        field.to("cpu")
+    return history
+
+
+def resolve_device(name: str) -> str:
+    """``auto`` → ``cuda`` where torch sees a GPU, else ``cpu``; other names are checked."""
+    torch = _torch()
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(f"device {name!r}: {err}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r}: torch sees no CUDA GPU here (use cpu or auto)")
+    return name
+
+
+def _fit_epochs(field, X, U, t_grid, scale, scale_np, ss, xw, uw, params, history, *, epochs, batch_windows,
+                learning_rate, lambda_pert, lambda_sparse, solver, substeps, adjoint, rng, callback, should_stop):
+    torch = _torch()
+    import torchdiffeq
+
+    device, dt = X.device, field.dt
     opt = torch.optim.Adam(params, lr=learning_rate)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=learning_rate * 0.05)
     integrate = torchdiffeq.odeint_adjoint if adjoint else torchdiffeq.odeint
@@ -181,7 +217,7 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
     if field.xi is not None:
         # ‖Ξ‖₁ on a common scale: each coefficient times its term's typical size over the state's scale
         theta = field.terms.evaluate(np.concatenate([xw.reshape(-1, xw.shape[-1]), uw.reshape(-1, uw.shape[-1])], 1))
-        xi_scale = torch.as_tensor(np.abs(theta).mean(axis=0)[:, None] * dt / scale.numpy()[None, :])
+        xi_scale = torch.as_tensor(np.abs(theta).mean(axis=0)[:, None] * dt / scale_np[None, :], device=device)
     started = time.monotonic()
     field.train()
     for epoch in range(epochs):
@@ -196,7 +232,7 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
         pred = integrate(field, xb[:, 0], t_grid, **kwargs)  # (window+1, batch, n)
         traj = torch.mean(((pred.transpose(0, 1) - xb) / scale) ** 2)
         loss = traj
-        jac_loss = torch.zeros(())
+        jac_loss = torch.zeros((), device=device)
         if lambda_pert > 0 and ss:
             for x_eq, u_eq, inc, int_dx, int_du, span_t in ss:
                 fx = torch.func.jacrev(lambda x: field.field(x[None], u_eq[None])[0])(x_eq)
@@ -206,7 +242,7 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
                 # on the scale of the record's own increments: 1 % steps are tiny next to the state spread
                 jac_loss = jac_loss + torch.mean(((pred_inc - inc) / (inc.std(dim=0) + 1e-12)) ** 2) / len(ss)
             loss = loss + lambda_pert * jac_loss
-        sparse = torch.zeros(())
+        sparse = torch.zeros((), device=device)
         if lambda_sparse > 0 and xi_scale is not None:
             sparse = torch.sum(torch.abs(field.coefficients()) * xi_scale)
             loss = loss + lambda_sparse * sparse
@@ -223,7 +259,6 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
             callback(epoch, {"trajectory": history.trajectory_loss[-1], "jacobian": history.jacobian_loss[-1], "sparse": history.sparse_loss[-1]})
     field.eval()
     history.seconds = time.monotonic() - started
-    return history
 
 
 class NeuralModel:

@@ -163,18 +163,22 @@ class TermSet:
                 self._plan = (fn, torch.as_tensor(index))
         if self._plan is not False:
             fn, index = self._plan
-            ones = torch.ones(z.shape[:-1] + (1,), dtype=z.dtype)
+            if index.device != z.device:  # training on an accelerator
+                index = index.to(z.device)
+                self._plan = (fn, index)
+            ones = torch.ones(z.shape[:-1] + (1,), dtype=z.dtype, device=z.device)
             cols = [ones]
             if fn is not None:
                 values = fn(*z.unbind(-1))
-                cols += [v if torch.is_tensor(v) else torch.full(z.shape[:-1], float(v), dtype=z.dtype)
+                cols += [v if torch.is_tensor(v) else torch.full(z.shape[:-1], float(v), dtype=z.dtype, device=z.device)
                          for v in values]
             base = torch.cat([ones] + [c.unsqueeze(-1) for c in cols[1:]], dim=-1) if len(cols) > 1 else ones
             return base[..., index].prod(dim=-1)
         if self._torch is None:
             self._torch = sympy.lambdify(self._symbols, self.exprs, modules=[_torch_module(), "math"], cse=True)
         cols = self._torch(*z.unbind(-1))
-        return torch.stack([c if torch.is_tensor(c) else torch.full(z.shape[:-1], float(c), dtype=z.dtype)
+        return torch.stack([c if torch.is_tensor(c) else torch.full(z.shape[:-1], float(c), dtype=z.dtype,
+                                                                     device=z.device)
                             for c in cols], dim=-1)
 
     def gradient(self, z: np.ndarray) -> np.ndarray:
