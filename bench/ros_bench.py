@@ -91,6 +91,7 @@ analyser:
     last_index: dict = {}
     gaps = [0]
     ended = []
+    ends = []  # (arrival, samples received so far) at each trajectory end: the steady delivery rate
     events: dict = {}
     t0 = time.monotonic()
 
@@ -108,6 +109,7 @@ analyser:
         last_index[key] = first + n
         if msg.end_of_trajectory:
             ended.append(time.monotonic())
+            ends.append((ended[-1], samples[0]))
             if len(ended) == 12:
                 events["12th_trajectory"] = time.monotonic()
 
@@ -176,6 +178,9 @@ analyser:
         "date": time.strftime("%Y-%m-%d"), "machine": f"{os.cpu_count()} cores",
         "link": {"seconds": round(link_seconds, 1), "samples_received": samples[0],
                  "samples_per_second": round(samples[0] / link_seconds, 1) if link_seconds else None,
+                 # first to last trajectory end: the paced rate, without the start-up and the wait at the end
+                 "samples_per_second_steady": round((ends[-1][1] - ends[0][1]) / (ends[-1][0] - ends[0][0]), 1)
+                 if len(ends) > 1 else None,
                  "batches": len(latencies), "index_gaps": gaps[0],
                  "latency_ms": {f"p{q}": round(float(np.percentile(lat, q)), 3) for q in (50, 90, 99, 100)}
                  if lat.size else None},
