@@ -229,13 +229,13 @@ class TrajectoryFitter:
                     raise _Abandon(params)
             theta, x_start = split(torch.tensor(params))
             dense = jac_theta(theta, x_start).numpy()  # (n_res, n_c)
-            # windows are independent: one forward tangent per state component covers all windows
-            blocks = []
-            for k in range(n):
-                direction = torch.zeros_like(x_start)
-                direction[:, k] = x_scale[k]
-                _, t_k = torch.func.jvp(lambda xs: trajectory_residuals(theta, xs), (x_start,), (direction,))
-                blocks.append(t_k.numpy())
+            # windows are independent: one forward tangent per state component covers all windows,
+            # the n tangents in one batched (vmap) pass
+            directions = torch.zeros((n,) + tuple(x_start.shape), dtype=x_start.dtype)
+            directions[torch.arange(n), :, torch.arange(n)] = x_scale[:, None]
+            tangents = torch.func.vmap(lambda d: torch.func.jvp(lambda xs: trajectory_residuals(theta, xs),
+                                                                (x_start,), (d,))[1])(directions)
+            blocks = list(tangents.numpy())
             # residual layout: (steps, windows, states) -> entry (step, win, s) depends on x0[win, :]
             steps = blocks[0].size // (n_win * n)
             rows, cols, vals = [], [], []
