@@ -161,6 +161,8 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
         CPU when this returns (or raises).
     """
     torch = _torch()
+    import torchdiffeq
+
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     xw, uw = trajectory_windows(train, window, stride=max(window // 2, 1))
@@ -179,10 +181,56 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
         return history
     field.to(device)
     try:
-        _fit_epochs(field, X, U, t_grid, scale, scale_np, ss, xw, uw, params, history, epochs=epochs,
-                    batch_windows=batch_windows, learning_rate=learning_rate, lambda_pert=lambda_pert,
-                    lambda_sparse=lambda_sparse, solver=solver, substeps=substeps, adjoint=adjoint, rng=rng,
-                    callback=callback, should_stop=should_stop)
+        opt = torch.optim.Adam(params, lr=learning_rate)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=learning_rate * 0.05)
+        integrate = torchdiffeq.odeint_adjoint if adjoint else torchdiffeq.odeint
+        options = {"step_size": dt / substeps} if solver in ("rk4", "euler", "midpoint") else None
+        xi_scale = None
+        if field.xi is not None:
+            # ‖Ξ‖₁ on a common scale: each coefficient times its term's typical size over the state's scale
+            theta = field.terms.evaluate(np.concatenate([xw.reshape(-1, xw.shape[-1]), uw.reshape(-1, uw.shape[-1])], 1))
+            xi_scale = torch.as_tensor(np.abs(theta).mean(axis=0)[:, None] * dt / scale_np[None, :], device=device)
+        started = time.monotonic()
+        field.train()
+        for epoch in range(epochs):
+            if should_stop is not None and should_stop():
+                raise StopRequested()
+            batch = rng.choice(X.shape[0], size=min(batch_windows, X.shape[0]), replace=False)
+            xb, ub = X[batch], U[batch]
+            field.u_seq = ub
+            kwargs = {"method": solver, "options": options} if options else {"method": solver, "rtol": 1e-6, "atol": 1e-8}
+            if adjoint:
+                kwargs["adjoint_params"] = tuple(params)
+            pred = integrate(field, xb[:, 0], t_grid, **kwargs)  # (window+1, batch, n)
+            traj = torch.mean(((pred.transpose(0, 1) - xb) / scale) ** 2)
+            loss = traj
+            jac_loss = torch.zeros((), device=device)
+            if lambda_pert > 0 and ss:
+                for x_eq, u_eq, inc, int_dx, int_du, span_t in ss:
+                    fx = torch.func.jacrev(lambda x: field.field(x[None], u_eq[None])[0])(x_eq)
+                    fu = torch.func.jacrev(lambda u: field.field(x_eq[None], u[None])[0])(u_eq)
+                    f0 = field.field(x_eq[None], u_eq[None])[0]
+                    pred_inc = span_t * f0 + int_dx @ fx.T + int_du @ fu.T
+                    # on the scale of the record's own increments: 1 % steps are tiny next to the state spread
+                    jac_loss = jac_loss + torch.mean(((pred_inc - inc) / (inc.std(dim=0) + 1e-12)) ** 2) / len(ss)
+                loss = loss + lambda_pert * jac_loss
+            sparse = torch.zeros((), device=device)
+            if lambda_sparse > 0 and xi_scale is not None:
+                sparse = torch.sum(torch.abs(field.coefficients()) * xi_scale)
+                loss = loss + lambda_sparse * sparse
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, 10.0)
+            opt.step()
+            sched.step()
+            history.epochs.append(epoch)
+            history.trajectory_loss.append(float(traj.detach()))
+            history.jacobian_loss.append(float(jac_loss.detach()))
+            history.sparse_loss.append(float(sparse.detach()))
+            if callback is not None:
+                callback(epoch, {"trajectory": history.trajectory_loss[-1], "jacobian": history.jacobian_loss[-1], "sparse": history.sparse_loss[-1]})
+        field.eval()
+        history.seconds = time.monotonic() - started
     finally:
         field.u_seq = None
         field.to("cpu")
@@ -201,64 +249,6 @@ def resolve_device(name: str) -> str:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device {name!r}: torch sees no CUDA GPU here (use cpu or auto)")
     return name
-
-
-def _fit_epochs(field, X, U, t_grid, scale, scale_np, ss, xw, uw, params, history, *, epochs, batch_windows,
-                learning_rate, lambda_pert, lambda_sparse, solver, substeps, adjoint, rng, callback, should_stop):
-    torch = _torch()
-    import torchdiffeq
-
-    device, dt = X.device, field.dt
-    opt = torch.optim.Adam(params, lr=learning_rate)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=learning_rate * 0.05)
-    integrate = torchdiffeq.odeint_adjoint if adjoint else torchdiffeq.odeint
-    options = {"step_size": dt / substeps} if solver in ("rk4", "euler", "midpoint") else None
-    xi_scale = None
-    if field.xi is not None:
-        # ‖Ξ‖₁ on a common scale: each coefficient times its term's typical size over the state's scale
-        theta = field.terms.evaluate(np.concatenate([xw.reshape(-1, xw.shape[-1]), uw.reshape(-1, uw.shape[-1])], 1))
-        xi_scale = torch.as_tensor(np.abs(theta).mean(axis=0)[:, None] * dt / scale_np[None, :], device=device)
-    started = time.monotonic()
-    field.train()
-    for epoch in range(epochs):
-        if should_stop is not None and should_stop():
-            raise StopRequested()
-        batch = rng.choice(X.shape[0], size=min(batch_windows, X.shape[0]), replace=False)
-        xb, ub = X[batch], U[batch]
-        field.u_seq = ub
-        kwargs = {"method": solver, "options": options} if options else {"method": solver, "rtol": 1e-6, "atol": 1e-8}
-        if adjoint:
-            kwargs["adjoint_params"] = tuple(params)
-        pred = integrate(field, xb[:, 0], t_grid, **kwargs)  # (window+1, batch, n)
-        traj = torch.mean(((pred.transpose(0, 1) - xb) / scale) ** 2)
-        loss = traj
-        jac_loss = torch.zeros((), device=device)
-        if lambda_pert > 0 and ss:
-            for x_eq, u_eq, inc, int_dx, int_du, span_t in ss:
-                fx = torch.func.jacrev(lambda x: field.field(x[None], u_eq[None])[0])(x_eq)
-                fu = torch.func.jacrev(lambda u: field.field(x_eq[None], u[None])[0])(u_eq)
-                f0 = field.field(x_eq[None], u_eq[None])[0]
-                pred_inc = span_t * f0 + int_dx @ fx.T + int_du @ fu.T
-                # on the scale of the record's own increments: 1 % steps are tiny next to the state spread
-                jac_loss = jac_loss + torch.mean(((pred_inc - inc) / (inc.std(dim=0) + 1e-12)) ** 2) / len(ss)
-            loss = loss + lambda_pert * jac_loss
-        sparse = torch.zeros((), device=device)
-        if lambda_sparse > 0 and xi_scale is not None:
-            sparse = torch.sum(torch.abs(field.coefficients()) * xi_scale)
-            loss = loss + lambda_sparse * sparse
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, 10.0)
-        opt.step()
-        sched.step()
-        history.epochs.append(epoch)
-        history.trajectory_loss.append(float(traj.detach()))
-        history.jacobian_loss.append(float(jac_loss.detach()))
-        history.sparse_loss.append(float(sparse.detach()))
-        if callback is not None:
-            callback(epoch, {"trajectory": history.trajectory_loss[-1], "jacobian": history.jacobian_loss[-1], "sparse": history.sparse_loss[-1]})
-    field.eval()
-    history.seconds = time.monotonic() - started
 
 
 class NeuralModel:

@@ -277,12 +277,18 @@ class TrajectoryFitter:
 def _profiled_hessian(jac, n_c: int) -> np.ndarray:
     """JᵀJ of the first ``n_c`` parameters with the others (window start states) minimised out
     (Schur complement): the curvature of the cost when the starts re-adjust to a coefficient change."""
-    jac = jac.toarray() if scipy.sparse.issparse(jac) else np.asarray(jac)
-    jc, jx = jac[:, :n_c], jac[:, n_c:]
-    h_cc, h_cx, h_xx = jc.T @ jc, jc.T @ jx, jx.T @ jx
+    if scipy.sparse.issparse(jac):
+        # the fit used LSMR (a large problem): keep the start-state block sparse, no dense copy
+        jac = jac.tocsc()
+        jc, jx = jac[:, :n_c].toarray(), jac[:, n_c:]
+        h_xc, h_xx = np.asarray(jx.T @ jc), (jx.T @ jx).toarray()
+    else:
+        jc, jx = jac[:, :n_c], jac[:, n_c:]
+        h_xc, h_xx = jx.T @ jc, jx.T @ jx
+    h_cc = jc.T @ jc
     if h_xx.size == 0:
         return h_cc
-    return h_cc - h_cx @ np.linalg.lstsq(h_xx, h_cx.T, rcond=1e-12)[0]
+    return h_cc - h_xc.T @ np.linalg.lstsq(h_xx, h_xc, rcond=1e-12)[0]
 
 
 def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support: np.ndarray,

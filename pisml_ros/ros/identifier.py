@@ -257,7 +257,7 @@ class IdentifierNode(Node):
 
     def _on_update(self, job: Job, update, started: float):
         job.stage, job.progress, job.epoch = update.stage, float(update.progress), int(update.epoch)
-        job.losses = {k: float(v) for k, v in update.losses.items() if _is_number(v)}
+        job.losses = dict(update.losses)  # numbers only (the worker keeps those)
         del self.history[:-(self.max_history - 1)]  # a node retraining for days keeps its recent curves
         self.history.append({"run": job.model_id, "t": round(time.monotonic() - started, 3),
                              "stage": update.stage, "progress": job.progress, "epoch": job.epoch,
@@ -417,14 +417,6 @@ def _resolve(path: str, parameter: str) -> Path:
         if candidate.exists():
             return candidate
     raise ValueError(f"parameter {parameter}: {path} not found (looked in {[str(c) for c in candidates]})")
-
-
-def _is_number(value) -> bool:
-    try:
-        float(value)
-        return True
-    except (TypeError, ValueError):
-        return False
 
 
 def _json_any(obj):
