@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 BENCH = Path(__file__).resolve().parent
-sys.path.insert(0, str(BENCH.parent))
+sys.path[:0] = [str(BENCH), str(BENCH.parent)]
 
 
 def main(argv=None) -> int:
@@ -32,19 +32,11 @@ def main(argv=None) -> int:
 
     import torch
 
+    from bench import PLANTS, datasets  # the identification benchmark's protocol data, same seeds
     from pisml_ros.analysis.metrics import protocol_errors
     from pisml_ros.ident import IdentConfig, make_estimator
-    from pisml_ros.plant import InverterPlant
-    from pisml_ros.plant.noise import add_measurement_noise
-    from pisml_ros.plant.scenarios import generate, schedules_for
 
-    plant = InverterPlant()
-    train = generate(plant, *schedules_for("train"))
-    small = generate(plant, *schedules_for("smallsignal"))
-    test = generate(plant, *schedules_for("test"))
-    if args.snr is not None:
-        train = add_measurement_noise(train, args.snr, seed=101)
-        small = add_measurement_noise(small, args.snr, seed=202)
+    _, train, small, test = datasets(PLANTS["standard"], args.snr)
     runs = {}
     for device in args.devices.split(","):
         if device.startswith("cuda") and not torch.cuda.is_available():

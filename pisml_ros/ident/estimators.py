@@ -309,7 +309,6 @@ def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: Explici
     state_scale = z[:, :n_x].std(axis=0) + 1e-9
 
     device = resolve_device(cfg.device)
-    est.training_device_ = device
     est.metrics_["training_on_gpu"] = float(device.startswith("cuda"))
 
     def progress(epoch, losses):
