@@ -87,7 +87,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     """The candidate with the smallest training error, with ``template``'s metadata and the selection.
 
     When that is the refined model or one of its pruned sub-models (names ``pruned …``), the
-    sparsest pruned one within ``tolerance`` (relative) of the smallest error takes its place: the
+    sparsest pruned one within ``tolerance`` (relative) of the refined model's error (or the
+    smallest, if larger) takes its place: the
     data barely tell it apart from the best, and a term the data cannot support is a liability out
     of distribution. (Where another candidate wins, pruning is not considered: on noisy data a
     refinement that lost should not come back through a tolerance.)
@@ -95,8 +96,11 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     best = min(scores, key=lambda name: scores[name])
     chosen = best
     if best == "refined" or best.startswith("pruned"):
+        # judged against the full-support refinement they approximate (a pruned model can score a
+        # little better than it, which must not narrow the choice)
+        reference = max(scores[best], scores.get("refined", scores[best]))
         near = [name for name in scores
-                if name.startswith("pruned") and scores[name] <= scores[best] * (1 + tolerance)]
+                if name.startswith("pruned") and scores[name] <= reference * (1 + tolerance)]
         chosen = min(near, key=lambda name: (candidates[name].n_parameters, scores[name])) if near else best
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
@@ -392,7 +396,7 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     try:
         result = fitter.fit(model.coefficients.copy(), model.coefficients != 0, train, smallsignal,
                             lambda_jac=1.0 if smallsignal is not None else 0.0, max_nfev=cfg.refine_max_nfev,
-                            on_evaluation=on_evaluation, keep_going=improving)
+                            on_evaluation=on_evaluation, keep_going=improving, fit_starts_first=True)
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
         # a refinement that breaks down (a window blowing up) leaves the earlier candidates standing
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")

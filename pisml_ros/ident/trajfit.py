@@ -93,7 +93,8 @@ class TrajectoryFitter:
 
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
-            on_evaluation=None, keep_going=None, check_every: int = 3) -> FitResult:
+            on_evaluation=None, keep_going=None, check_every: int = 3,
+            fit_starts_first: bool = False) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -104,6 +105,10 @@ class TrajectoryFitter:
             Records that start in steady state and then see a small input step.
         lambda_jac : float
             Weight of the small-signal residuals (0 switches them off).
+        fit_starts_first : bool
+            First fit the window start states alone (coefficients fixed). On noisy data a start at
+            the measured sample excites the fast modes for the whole window; without this the first
+            joint steps spend the coefficients on undoing that.
         keep_going : callable, optional
             ``keep_going(coefficients) -> bool``, asked at every ``check_every``-th accepted point
             (Jacobian evaluation); False stops the fit there (``FitResult.abandoned``). The
@@ -180,7 +185,9 @@ class TrajectoryFitter:
                                torch.zeros((du.shape[1], n + du.shape[1]), dtype=c.dtype)], dim=0)
                 disc = torch.linalg.matrix_exp(m * ss_dt)
                 ad, bd = disc[:n, :n], disc[:n, n:]
-                y = dx[0]
+                # the record is in steady state before the step: a start at the first (noisy)
+                # deviation sample would ring the fast modes through the whole record
+                y = torch.zeros_like(dx[0])
                 preds = [y]
                 for k in range(dx.shape[0] - 1):
                     y = ad @ y + bd @ du[k]
@@ -235,18 +242,7 @@ class TrajectoryFitter:
             directions[torch.arange(n), :, torch.arange(n)] = x_scale[:, None]
             tangents = torch.func.vmap(lambda d: torch.func.jvp(lambda xs: trajectory_residuals(theta, xs),
                                                                 (x_start,), (d,))[1])(directions)
-            blocks = list(tangents.numpy())
-            # residual layout: (steps, windows, states) -> entry (step, win, s) depends on x0[win, :]
-            steps = blocks[0].size // (n_win * n)
-            rows, cols, vals = [], [], []
-            r_index = np.arange(steps * n_win * n).reshape(steps, n_win, n)
-            for k in range(n):
-                b = blocks[k].reshape(steps, n_win, n)
-                rows.append(r_index.ravel())
-                cols.append((n_c + np.arange(n_win)[None, :, None] * n + k + 0 * r_index).ravel())
-                vals.append(np.where(np.isfinite(b), b, 0.0).ravel())
-            sparse = scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                                             shape=(dense.shape[0], n_c + n_x))
+            sparse = _start_state_block(tangents.numpy(), n_win, dense.shape[0], n_c)
             dense_full = scipy.sparse.csr_matrix(np.hstack([np.where(np.isfinite(dense), dense, 0.0),
                                                             np.zeros((dense.shape[0], n_x))]))
             full = dense_full + sparse
@@ -258,6 +254,8 @@ class TrajectoryFitter:
             return out.reshape(coef0.shape)
 
         theta0 = np.concatenate([coef0.ravel()[idx] / scale, np.zeros(n_x)])
+        if fit_starts_first:
+            theta0[n_c:] = _fit_starts(theta0, n_c, split, trajectory_residuals, n, n_win)
         with torch.no_grad():
             n_rows = int(all_residuals(torch.tensor(theta0)).numel())
         exact = self.exact_range[0] <= n_rows * (n_c + n_x) <= self.exact_range[1]
@@ -272,6 +270,52 @@ class TrajectoryFitter:
         hessian = _profiled_hessian(result.jac, n_c) / np.outer(scale, scale)
         return FitResult(coef.reshape(coef0.shape), float(result.cost), int(result.nfev),
                          time.monotonic() - started, hessian=hessian, support=idx)
+
+
+
+def _start_state_block(tangents: np.ndarray, n_win: int, n_rows: int, offset: int) -> "scipy.sparse.csr_matrix":
+    """The sparse Jacobian block of the window start states from the ``n`` batched tangents
+    (tangent k: every window's start component k moved by its scale), in columns ``offset`` on.
+
+    Residual layout (steps, windows, states): entry (step, win, s) depends on the starts of
+    window ``win`` only. Rows past the trajectory residuals (small-signal ones) stay empty.
+    """
+    n = tangents.shape[0]
+    steps = tangents[0].size // (n_win * n)
+    r_index = np.arange(steps * n_win * n).reshape(steps, n_win, n)
+    rows = np.concatenate([r_index.ravel()] * n)
+    cols = np.concatenate([(offset + np.arange(n_win)[None, :, None] * n + k + 0 * r_index).ravel()
+                           for k in range(n)])
+    vals = np.concatenate([np.where(np.isfinite(t), t, 0.0).ravel() for t in tangents])
+    return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n_rows, offset + n_win * n))
+
+
+def _fit_starts(theta0, n_c, split, trajectory_residuals, n, n_win, max_nfev: int = 10) -> np.ndarray:
+    """Window start offsets (scaled; ``theta0[n_c:]`` updated) minimising the trajectory residuals
+    with the coefficients ``theta0[:n_c]`` fixed. Windows are independent: a sparse, cheap problem."""
+    import torch
+
+    coef_part = torch.tensor(theta0[:n_c])
+
+    def residuals_of(offsets):
+        theta, x_start = split(torch.cat([coef_part, offsets]))
+        return trajectory_residuals(theta, x_start)
+
+    def fun(p):
+        with torch.no_grad():
+            r = residuals_of(torch.tensor(p)).numpy()
+        return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+
+    def jac(p):
+        offsets = torch.tensor(p)
+        directions = torch.zeros((n, n_win * n), dtype=offsets.dtype)
+        for k in range(n):
+            directions[k, k::n] = 1.0
+        tangents = torch.func.vmap(lambda d: torch.func.jvp(residuals_of, (offsets,), (d,))[1])(directions)
+        return _start_state_block(tangents.numpy(), n_win, tangents.shape[1], 0)
+
+    return scipy.optimize.least_squares(fun, theta0[n_c:], jac=jac, method="trf", tr_solver="lsmr",
+                                        max_nfev=max_nfev, x_scale="jac").x
 
 
 def _profiled_hessian(jac, n_c: int) -> np.ndarray:
