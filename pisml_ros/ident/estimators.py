@@ -88,7 +88,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
 
     When that is the refined model or one of its pruned sub-models (names ``pruned …``), the
     sparsest pruned one within ``tolerance`` (relative) of the refined model's error (or the
-    smallest, if larger) takes its place: the
+    smallest, if larger) takes its place, preferring models stable at the training records'
+    steady starts (``reference_points``) where any of the near ones (or the best) is: the
     data barely tell it apart from the best, and a term the data cannot support is a liability out
     of distribution. (Where another candidate wins, pruning is not considered: on noisy data a
     refinement that lost should not come back through a tolerance.)
@@ -101,13 +102,30 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
         reference = max(scores[best], scores.get("refined", scores[best]))
         near = [name for name in scores
                 if name.startswith("pruned") and scores[name] <= reference * (1 + tolerance)]
-        chosen = min(near, key=lambda name: (candidates[name].n_parameters, scores[name])) if near else best
+        # the records start in steady state at their operating points: a model with an unstable
+        # mode there contradicts them (the slow droop modes are weakly pinned by 40 ms records and
+        # can tip over from one pruning to the next)
+        stable = [name for name in near + [best] if _stable_at_reference_points(candidates[name], template)]
+        pool = [name for name in near if name in stable] if stable else near
+        chosen = min(pool, key=lambda name: (candidates[name].n_parameters, scores[name])) if pool else best
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
     model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores),
                                    "nonzero": {name: int(c.n_parameters) for name, c in candidates.items()},
                                    "tolerance": tolerance}
     return model
+
+
+def _stable_at_reference_points(model: ExplicitModel, template: ExplicitModel) -> bool:
+    """Whether ``model`` has an equilibrium with no eigenvalue in the right half-plane at every
+    reference point (steady start of a training record) of ``template``'s metadata."""
+    points = template.metadata.get("reference_points") or []
+    probe = ExplicitModel(model.state_names, model.input_names, model.terms, model.coefficients,
+                          {"reference_points": points})
+    try:
+        return bool(points) and all(np.max(probe.eigenvalues(*p["inputs"]).real) < 0 for p in points)
+    except (ValueError, RuntimeError, np.linalg.LinAlgError, FloatingPointError):
+        return False
 
 
 class ModSINDy(_Estimator):
