@@ -137,7 +137,8 @@ def test_refinement_exact_and_iterative_steps_agree(truth):
 
 
 def test_refinement_stops_when_told_the_fit_is_not_improving(truth):
-    """``keep_going`` is asked at accepted points; False ends the fit there, with what it had."""
+    """``keep_going`` is asked at accepted points after ``first_check`` of them; False ends the fit
+    there, with what it had."""
     from pisml_ros.ident.trajfit import TrajectoryFitter
 
     model, plant = truth
@@ -150,7 +151,11 @@ def test_refinement_stops_when_told_the_fit_is_not_improving(truth):
         return False
 
     result = fitter.fit(start, model.coefficients != 0, data, lambda_jac=0.0, max_nfev=6, keep_going=keep_going,
-                        check_every=1)
+                        check_every=1, first_check=1)
     assert result.abandoned and len(asked) == 1 and result.nfev < 6
     np.testing.assert_array_equal(result.coefficients, asked[0])
     assert np.all(np.isfinite(result.coefficients)) and np.all((result.coefficients != 0) <= (start != 0))
+    # by default not before 6 accepted points: a fit of at most 6 evaluations is never asked
+    asked.clear()
+    result = fitter.fit(start, model.coefficients != 0, data, lambda_jac=0.0, max_nfev=6, keep_going=keep_going)
+    assert not result.abandoned and not asked
