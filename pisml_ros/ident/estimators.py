@@ -105,7 +105,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
         # the records start in steady state at their operating points: a model with an unstable
         # mode there contradicts them (the slow droop modes are weakly pinned by 40 ms records and
         # can tip over from one pruning to the next)
-        stable = [name for name in near + [best] if _stable_at_reference_points(candidates[name], template)]
+        stable = [name for name in dict.fromkeys(near + [best])
+                  if _stable_at_reference_points(candidates[name], template)]
         pool = [name for name in near if name in stable] if stable else near
         chosen = min(pool, key=lambda name: (candidates[name].n_parameters, scores[name])) if pool else best
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,

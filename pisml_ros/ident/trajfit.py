@@ -233,6 +233,15 @@ class TrajectoryFitter:
 
         jac_calls = [0]
 
+        def start_jacobian(theta, x_start, n_rows, offset):
+            # windows are independent: one forward tangent per state component covers all windows,
+            # the n tangents in one batched (vmap) pass
+            directions = torch.zeros((n,) + tuple(x_start.shape), dtype=x_start.dtype)
+            directions[torch.arange(n), :, torch.arange(n)] = x_scale[:, None]
+            tangents = torch.func.vmap(lambda d: torch.func.jvp(lambda xs: trajectory_residuals(theta, xs),
+                                                                (x_start,), (d,))[1])(directions)
+            return _start_state_block(tangents.numpy(), n_win, n_rows, offset)
+
         def jac(params):
             jac_calls[0] += 1
             if (keep_going is not None and jac_calls[0] > first_check
@@ -241,13 +250,7 @@ class TrajectoryFitter:
                     raise _Abandon(params)
             theta, x_start = split(torch.tensor(params))
             dense = jac_theta(theta, x_start).numpy()  # (n_res, n_c)
-            # windows are independent: one forward tangent per state component covers all windows,
-            # the n tangents in one batched (vmap) pass
-            directions = torch.zeros((n,) + tuple(x_start.shape), dtype=x_start.dtype)
-            directions[torch.arange(n), :, torch.arange(n)] = x_scale[:, None]
-            tangents = torch.func.vmap(lambda d: torch.func.jvp(lambda xs: trajectory_residuals(theta, xs),
-                                                                (x_start,), (d,))[1])(directions)
-            sparse = _start_state_block(tangents.numpy(), n_win, dense.shape[0], n_c)
+            sparse = start_jacobian(theta, x_start, dense.shape[0], n_c)
             dense_full = scipy.sparse.csr_matrix(np.hstack([np.where(np.isfinite(dense), dense, 0.0),
                                                             np.zeros((dense.shape[0], n_x))]))
             full = dense_full + sparse
@@ -259,10 +262,15 @@ class TrajectoryFitter:
             return out.reshape(coef0.shape)
 
         theta0 = np.concatenate([coef0.ravel()[idx] / scale, np.zeros(n_x)])
-        if fit_starts_first:
-            theta0[n_c:] = _fit_starts(theta0, n_c, split, trajectory_residuals, n, n_win)
         with torch.no_grad():
             n_rows = int(all_residuals(torch.tensor(theta0)).numel())
+        if fit_starts_first:
+            # the start states alone, coefficients fixed: independent windows, a sparse, cheap problem
+            fixed = theta0[:n_c]
+            theta0[n_c:] = scipy.optimize.least_squares(
+                lambda p: residual_vector(np.concatenate([fixed, p])), theta0[n_c:],
+                jac=lambda p: start_jacobian(*split(torch.tensor(np.concatenate([fixed, p]))), n_rows, 0),
+                method="trf", tr_solver="lsmr", max_nfev=10, x_scale="jac").x
         exact = self.exact_range[0] <= n_rows * (n_c + n_x) <= self.exact_range[1]
         try:
             result = scipy.optimize.least_squares(fun, theta0, jac=jac, method="trf", x_scale="jac",
@@ -292,34 +300,6 @@ def _start_state_block(tangents: np.ndarray, n_win: int, n_rows: int, offset: in
                            for k in range(n)])
     vals = np.concatenate([np.where(np.isfinite(t), t, 0.0).ravel() for t in tangents])
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n_rows, offset + n_win * n))
-
-
-def _fit_starts(theta0, n_c, split, trajectory_residuals, n, n_win, max_nfev: int = 10) -> np.ndarray:
-    """Window start offsets (scaled; ``theta0[n_c:]`` updated) minimising the trajectory residuals
-    with the coefficients ``theta0[:n_c]`` fixed. Windows are independent: a sparse, cheap problem."""
-    import torch
-
-    coef_part = torch.tensor(theta0[:n_c])
-
-    def residuals_of(offsets):
-        theta, x_start = split(torch.cat([coef_part, offsets]))
-        return trajectory_residuals(theta, x_start)
-
-    def fun(p):
-        with torch.no_grad():
-            r = residuals_of(torch.tensor(p)).numpy()
-        return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
-
-    def jac(p):
-        offsets = torch.tensor(p)
-        directions = torch.zeros((n, n_win * n), dtype=offsets.dtype)
-        for k in range(n):
-            directions[k, k::n] = 1.0
-        tangents = torch.func.vmap(lambda d: torch.func.jvp(residuals_of, (offsets,), (d,))[1])(directions)
-        return _start_state_block(tangents.numpy(), n_win, tangents.shape[1], 0)
-
-    return scipy.optimize.least_squares(fun, theta0[n_c:], jac=jac, method="trf", tr_solver="lsmr",
-                                        max_nfev=max_nfev, x_scale="jac").x
 
 
 def _profiled_hessian(jac, n_c: int) -> np.ndarray:
