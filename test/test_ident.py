@@ -365,14 +365,20 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     chosen = _selected(candidates["refined"], candidates, scores, tolerance=0.5)
     assert chosen.metadata["selection"]["chosen"] == "pruned +0.3 %"
     assert chosen.n_parameters == 3
-    # a model unstable at the records' steady starts is passed over for a stable near one:
-    # here dx/dt = x - 1 (unstable) for the sparsest, dx/dt = 1 - x for the +0.3 % one
-    template = ExplicitModel(("x",), ("u",), ["1", "x"], np.zeros((2, 1)),
+    # a pruned model whose stability at the records' operating points differs from the refined
+    # model's is passed over for one that keeps it: the refined dx/dt = 1 - x + 0.01 u is stable, the
+    # sparsest pruned one (dx/dt = x - 1) is not
+    template = ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.zeros((3, 1)),
                              {"reference_points": [{"inputs": [0.0], "state": [1.0]}]})
-    two = {"refined": model(2), "pruned +0.3 %": ExplicitModel(("x",), ("u",), ["1", "x"], np.array([[1.0], [-1.0]]), {}),
+    two = {"refined": ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[1.0], [-1.0], [0.01]]), {}),
+           "pruned +0.3 %": ExplicitModel(("x",), ("u",), ["1", "x"], np.array([[1.0], [-1.0]]), {}),
            "pruned +1 %": ExplicitModel(("x",), ("u",), ["1", "x"], np.array([[-1.0], [1.0]]), {})}
-    pick = _selected(template, two, {"refined": 0.03, "pruned +0.3 %": 0.04, "pruned +1 %": 0.035}, tolerance=0.5)
-    assert pick.metadata["selection"]["chosen"] == "pruned +0.3 %"
+    scores2 = {"refined": 0.03, "pruned +0.3 %": 0.04, "pruned +1 %": 0.035}
+    assert _selected(template, two, scores2, tolerance=0.5).metadata["selection"]["chosen"] == "pruned +0.3 %"
+    # ... and where the refined model is unstable there (a record may start at a weakly unstable
+    # equilibrium), a stable pruned model is not preferred for it
+    two["refined"] = ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[-1.0], [1.0], [0.01]]), {})
+    assert _selected(template, two, scores2, tolerance=0.5).metadata["selection"]["chosen"] == "pruned +1 %"
     # where another candidate wins, pruned models do not come back through the tolerance
     scores["backbone"] = 0.02
     assert _selected(candidates["refined"], candidates, scores, tolerance=0.5).metadata["selection"]["chosen"] == "backbone"

@@ -43,3 +43,27 @@ def ug_stability_margin(system, ug: float, theta_g: float = 0.0, ug_range=(0.2, 
     grid = np.linspace(ug_range[0], ug_range[1], points)
     bounds = stability_boundaries(lambda g: max_real_part(system, g, theta_g), grid)
     return {"boundaries": bounds, "ug_margin": distance_to_boundary(ug, bounds)}
+
+
+def stability_at_points(model, points) -> list:
+    """Stability of ``model`` at each operating point of ``points`` (dicts with ``inputs`` and
+    ``state``, as a model's ``metadata["reference_points"]``, which also seed the equilibrium search).
+
+    Returns
+    -------
+    list of bool or None
+        Per point: True if the equilibrium there has no eigenvalue with a real part >= 0, False if it
+        has, None where no equilibrium was found.
+    """
+    from ..model import ExplicitModel
+
+    probe = ExplicitModel(model.state_names, model.input_names, model.terms, model.coefficients,
+                          {"reference_points": list(points)})
+    verdicts = []
+    for point in points:
+        inputs = [float(v) for v in point["inputs"]]
+        try:
+            verdicts.append(bool(np.max(probe.eigenvalues(*inputs).real) < 0))
+        except (RuntimeError, ValueError, np.linalg.LinAlgError, FloatingPointError):  # no equilibrium
+            verdicts.append(None)
+    return verdicts
