@@ -46,8 +46,9 @@ def ug_stability_margin(system, ug: float, theta_g: float = 0.0, ug_range=(0.2, 
 
 
 def stability_at_points(model, points) -> list:
-    """Stability of ``model`` at each operating point of ``points`` (dicts with ``inputs`` and
-    ``state``, as a model's ``metadata["reference_points"]``, which also seed the equilibrium search).
+    """Stability of an explicit ``model`` at each operating point of ``points`` (dicts with
+    ``inputs`` and ``state``, as a model's ``metadata["reference_points"]``; they also seed the
+    equilibrium search).
 
     Returns
     -------

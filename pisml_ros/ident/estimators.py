@@ -104,9 +104,9 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
         reference = max(scores[best], scores.get("refined", scores[best]))
         near = [name for name in scores
                 if name.startswith("pruned") and scores[name] <= reference * (1 + tolerance)]
-        # Not "stable at every reference point": records may start at an equilibrium that is
-        # (weakly) unstable, which 40 ms do not reveal (the protocol's ug0 reaches 1.2, the plant's
-        # boundary is 1.166); preferring stable models there would move the boundary away.
+        # the refined model's verdicts, not "stable": a record can start at a weakly unstable
+        # equilibrium that 40 ms do not reveal (protocol ug0 up to 1.2, plant boundary 1.166, max
+        # Re +0.25 1/s at 1.2): preferring models stable there favours a boundary in the wrong place
         pool = near
         if near and "refined" in candidates:
             points = template.metadata.get("reference_points") or []
