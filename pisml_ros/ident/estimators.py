@@ -390,7 +390,8 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     if start_error is None:
         start_error = training_error(model, train)
     errors = {} if errors is None else errors
-    last_check: dict = {}
+    checked: list = []  # free-run training errors at the accepted points looked at
+    since_check = [0]
 
     def on_evaluation(nfev, cost):
         if progress:
@@ -398,11 +399,13 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                      {"refine_cost": cost, "nonzero": int(np.count_nonzero(model.coefficients))})
 
     def improving(c):
-        # stop early when the free-run error of the training records has not gone below the start
-        # model's (noisy data: a far-off start can make the refinement diverge)
-        last_check["error"] = training_error(ExplicitModel(model.state_names, model.input_names, model.terms, c),
-                                             train)
-        return last_check["error"] < start_error
+        # a free-run check costs ~1 s: once the fit is better than its start, look every 3rd point
+        since_check[0] += 1
+        if checked and checked[-1] < start_error and since_check[0] < 3:
+            return True
+        since_check[0] = 0
+        checked.append(training_error(ExplicitModel(model.state_names, model.input_names, model.terms, c), train))
+        return _worth_continuing(checked, start_error)
 
     try:
         result = fitter.fit(model.coefficients.copy(), model.coefficients != 0, train, smallsignal,
@@ -417,7 +420,7 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                           "abandoned": result.abandoned}
     out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients, meta)}
     if result.abandoned:
-        errors["refined"] = last_check["error"]  # the abandoned point is the one just checked
+        errors["refined"] = checked[-1]  # the abandoned point is the one just checked
         model.metadata.setdefault("refinement_notes", []).append(
             f"abandoned after {result.nfev} evaluations (training error not improving)")
         return out
@@ -431,6 +434,23 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                                       {**meta, "pruning": {"budget": budget,
                                                            "predicted_cost_rise": rise / max(result.cost, 1e-300)}})
     return out
+
+
+def _worth_continuing(errors: list, start_error: float, min_fall: float = 0.02) -> bool:
+    """Whether a refinement should go on, from the free-run training errors at its accepted points
+    so far (``errors``, newest last) and its start model's (``start_error``).
+
+    On while the newest error beats the start's, or still falls (by ``min_fall``, relative, below
+    the best so far): the multiple-shooting cost always decreases, but from a far-off start on noisy
+    data the model run freely can stay worse. Measured (benchmark recordings, errors in % at the
+    first accepted points): 40 dB, start 4.39: 5.57, 5.41, 5.63, 6.01, 5.48, 5.43, 5.16 (never
+    better; stopped at the 3rd); 60 dB, start 1.66: 2.93, 2.14, 1.81, 1.32, ... (worse at first,
+    falling, then better: it went on to 0.61 / 0.67 % IOD/OOD where its backbones score 2.5-2.9 %).
+    """
+    newest = errors[-1]
+    if newest < start_error:
+        return True
+    return len(errors) == 1 or newest < (1 - min_fall) * min(errors[:-1])
 
 
 def make_estimator(method: str = "pisml", config: IdentConfig | None = None):

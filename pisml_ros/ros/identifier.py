@@ -4,7 +4,8 @@ Assembles MeasurementBatch messages into trajectories (gaps, reordering and
 restarts handled by :class:`~pisml_ros.data.stream.TrajectoryBuffer`; malformed
 batches are rejected with a diagnostic and the node keeps running). Training
 runs in a child process (:class:`~pisml_ros.ident.worker.IdentificationWorker`, started warm
-ahead of time and replaced after every run, so the node's memory stays flat), watched by a
+ahead of time — the next run's while the current one trains — and closed after its run, so the
+node's memory stays flat), watched by a
 thread (the executor never blocks): automatically once
 ``min_trajectories`` complete trajectories are buffered (``retrain_policy``:
 ``once`` | ``on_new_data`` | ``manual``), or on request through the
@@ -211,6 +212,12 @@ class IdentifierNode(Node):
     def _run_job(self, job: Job):
         started = time.monotonic()
         worker = self._take_worker()
+        if not job.stop.is_set():
+            with self.lock:
+                if self.worker is None:
+                    # the next run's process imports the engine (~5 s) while this one trains: a
+                    # retraining that starts as this one ends gets its backbone out at once
+                    self.worker = IdentificationWorker(self.training_threads)
         result = RunResult("failed", error="no result")
         try:
             worker.submit(job.method, job.config, job.data, self.smallsignal)
