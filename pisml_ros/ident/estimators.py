@@ -391,7 +391,6 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         start_error = training_error(model, train)
     errors = {} if errors is None else errors
     checked: list = []  # free-run training errors at the accepted points looked at
-    since_check = [0]
 
     def on_evaluation(nfev, cost):
         if progress:
@@ -399,11 +398,10 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                      {"refine_cost": cost, "nonzero": int(np.count_nonzero(model.coefficients))})
 
     def improving(c):
-        # a free-run check costs ~1 s: once the fit is better than its start, look every 3rd point
-        since_check[0] += 1
-        if checked and checked[-1] < start_error and since_check[0] < 3:
+        # a free-run check costs ~1 s; once the fit beats its start it has earned its budget (the
+        # selection scores the result anyway)
+        if checked and checked[-1] < start_error:
             return True
-        since_check[0] = 0
         checked.append(training_error(ExplicitModel(model.state_names, model.input_names, model.terms, c), train))
         return _worth_continuing(checked, start_error)
 
