@@ -232,10 +232,6 @@ class IdentifierNode(Node):
             result = RunResult("failed", error=f"{type(err).__name__}: {err}")
         finally:
             worker.close(timeout=5.0 if job.stop.is_set() else 10.0)  # its memory goes back to the OS
-            if not job.stop.is_set():
-                with self.lock:
-                    if self.worker is None:
-                        self.worker = IdentificationWorker(self.training_threads)  # warm for the next run
         if job.stop.is_set():
             job.done.set()
             return  # the node is shutting down: nothing to publish or start
