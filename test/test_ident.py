@@ -207,7 +207,9 @@ def test_pisml_pipeline_stages_and_model(train, small, test_set):
     assert stages == ["backbone", "hybrid", "explicit (before refinement)", "explicit"]
     preliminary = next(u.model for u in updates if u.stage == "explicit (before refinement)")
     assert isinstance(preliminary, ExplicitModel)
-    assert preliminary.metadata["selection"]["chosen"] in ("backbone", "trained backbone", "distilled")
+    assert preliminary.metadata["selection"]["chosen"] in ("backbone", "trained backbone", "distilled",
+                                                           *[n for n in est.candidates_ if n.startswith("re-fit")])
+    assert {f"re-fit +{b:g} %" for b in (100, 300, 1000)} <= set(est.candidates_)
     progress = [u.progress for u in updates]
     assert progress == sorted(progress) and progress[-1] == 1.0
     model = est.explicit_model_
@@ -349,6 +351,50 @@ def test_trajectory_fit_of_noisy_records_stays_at_the_true_coefficients():
     np.testing.assert_allclose(result.coefficients[truth != 0], truth[truth != 0], rtol=0.03)
 
 
+def test_integral_form_spline_quadrature_and_input_jumps():
+    from pisml_ros.data import Dataset, Trajectory
+    from pisml_ros.ident.derivatives import input_jumps, integral_form
+    from pisml_ros.model.expressions import term_set
+
+    # a 1.5 kHz rotation sampled at 10 kHz (~6.7 samples per period, like the LCL modes)
+    w, dt, n = 2 * np.pi * 1500.0, 1e-4, 400
+    t = np.arange(n) * dt
+    v = np.where(np.arange(n) < 200, 1.0, 0.8)  # an input jump between samples 199 and 200
+    data = Dataset(("x1", "x2"), ("v",), [Trajectory(0, t, np.column_stack([np.sin(w * t), np.cos(w * t)]), v[:, None])])
+    truth = np.array([[0.0, -w], [w, 0.0]])  # x1' = w x2, x2' = -w x1 over terms x1, x2
+    ts = term_set(["x1", "x2"], ("x1", "x2", "v"))
+
+    def misfit(a, b):
+        return np.linalg.norm(a @ truth - b) / np.linalg.norm(b)
+
+    a, b = integral_form(data, ts, span=10)
+    assert a.shape[0] == n - 10 and misfit(a, b) > 0.03  # the trapezoid rule: ~(w dt)^2 / 12
+    a, b = integral_form(data, ts, span=10, quadrature="spline")
+    assert a.shape[0] == n - 10 - 10  # the ten windows across the jump are dropped
+    assert misfit(a, b) < 0.01
+    with pytest.raises(ValueError, match="quadrature"):
+        integral_form(data, ts, quadrature="simpson")
+    # jumps of piecewise-constant inputs, and a step in a noisy input (not its noise)
+    assert np.flatnonzero(input_jumps(v[:, None])).tolist() == [199]
+    noisy = v[:, None] + 1e-3 * np.random.default_rng(0).standard_normal((n, 1))
+    assert np.flatnonzero(input_jumps(noisy)).tolist() == [199]
+
+
+def test_sparse_refit_recovers_the_structure_of_clean_records():
+    from pisml_ros.ident.refit import sparse_refit
+
+    train, truth = _oscillator_data(6, lambda rng: [(int(rng.integers(50, 350)), rng.uniform(0.5, 1.5))], seed=1,
+                                    noise=0.0)
+    # the true terms plus spurious ones, some nearly collinear with them over these records
+    terms = ["xa", "xb", "v", "1", "xa**2", "xa*xb", "xb*v", "xa*v"]
+    dense, sparse = sparse_refit(train, terms, budgets=[0.0, 3.0])
+    assert np.count_nonzero(dense) == len(terms) * 2
+    assert np.array_equal(sparse[:3] != 0, truth != 0) and not np.any(sparse[3:])
+    np.testing.assert_allclose(sparse[:3][truth != 0], truth[truth != 0], rtol=1e-3)
+    with pytest.raises(ValueError, match="too short"):
+        sparse_refit(train, terms, budgets=[1.0], span=399)
+
+
 def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     from pisml_ros.ident.estimators import _selected
 
@@ -378,6 +424,11 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     # ... and where the refined model is unstable there (a record may start at a weakly unstable
     # equilibrium), a stable pruned model is not preferred for it
     two["refined"] = ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[-1.0], [1.0], [0.01]]), {})
+    assert _selected(template, two, scores2, tolerance=0.5).metadata["selection"]["chosen"] == "pruned +1 %"
+    # a candidate with no equilibrium at the records' operating points (dx/dt = 1 - 0.5 u never
+    # vanishes at u = 0) does not win, however well it scores
+    two["re-fit +300 %"] = ExplicitModel(("x",), ("u",), ["1", "u"], np.array([[1.0], [-0.5]]), {})
+    scores2["re-fit +300 %"] = 0.001
     assert _selected(template, two, scores2, tolerance=0.5).metadata["selection"]["chosen"] == "pruned +1 %"
     # where another candidate wins, pruned models do not come back through the tolerance
     scores["backbone"] = 0.02

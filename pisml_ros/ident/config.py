@@ -19,7 +19,7 @@ class IdentConfig:
 
     Attributes are grouped by stage: ``backbone_*`` (sparse physics backbone),
     ``hidden``/``dropout``/``epochs``/... (neural residual trained through the ODE
-    solver), ``lambda_*`` (loss weights), ``distill_*`` (symbolic distillation) and
+    solver), ``lambda_*`` (loss weights), ``distill_*`` (symbolic distillation), ``refit_*`` (sparse re-fit of the merged terms) and
     ``refine_*`` (fine-tuning of the merged explicit model on trajectories).
     """
 
@@ -58,6 +58,10 @@ class IdentConfig:
     distill_samples: int = 20000
     distill_max_terms: int = 6
     distill_spread: float = 0.05
+    # sparse re-fit of the merged model's terms on the data (ident.refit; equation error): one
+    # candidate per budget (allowed rise of each row's cost over its least-squares minimum); empty: off
+    refit_budgets: tuple = (1.0, 3.0, 10.0)
+    refit_span: int = 10
     # fine-tuning of the merged explicit model
     refine: bool = True
     refine_window: int = 20
@@ -125,7 +129,7 @@ class IdentConfig:
 
     def check(self) -> None:
         positive = ["backbone_span", "epochs", "window", "batch_windows", "substeps", "distill_samples", "distill_max_terms",
-                    "refine_window", "refine_max_windows", "learning_rate"]
+                    "refine_window", "refine_max_windows", "learning_rate", "refit_span"]
         for key in positive:
             if getattr(self, key) <= 0:
                 raise ConfigError(f"identification config: {key} must be > 0, got {getattr(self, key)}")
@@ -138,6 +142,8 @@ class IdentConfig:
         if any(b < 0 for b in self.refine_prune_budgets):
             raise ConfigError(f"identification config: refine_prune_budgets must be >= 0, got "
                               f"{list(self.refine_prune_budgets)}")
+        if any(b < 0 for b in self.refit_budgets):
+            raise ConfigError(f"identification config: refit_budgets must be >= 0, got {list(self.refit_budgets)}")
         if not 0 <= self.dropout < 1:
             raise ConfigError(f"identification config: dropout must be in [0, 1), got {self.dropout}")
         if self.solver not in ("rk4", "euler", "midpoint", "dopri5"):
@@ -149,4 +155,5 @@ class IdentConfig:
         out["roles"] = self.roles.to_dict()
         out["hidden"] = list(self.hidden)
         out["refine_prune_budgets"] = list(self.refine_prune_budgets)
+        out["refit_budgets"] = list(self.refit_budgets)
         return out

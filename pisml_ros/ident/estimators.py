@@ -87,6 +87,8 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
 def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0) -> ExplicitModel:
     """The candidate with the smallest training error, with ``template``'s metadata and the selection.
 
+    Only candidates with an equilibrium at every operating point where the training records sat
+    at rest (``reference_points``) compete, unless none has.
     When that is the refined model or one of its pruned sub-models (names ``pruned …``), the
     sparsest pruned one within ``tolerance`` (relative) of the refined model's error (or the
     smallest, if larger) takes its place, preferring those whose stability verdicts at the
@@ -96,22 +98,32 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     (Where another candidate wins, pruning is not considered: on noisy data a refinement that
     lost should not come back through a tolerance.)
     """
-    best = min(scores, key=lambda name: scores[name])
+    points = template.metadata.get("reference_points") or []
+    verdicts = {}
+
+    def verdicts_of(name):
+        if name not in verdicts:
+            verdicts[name] = stability_at_points(candidates[name], points)
+        return verdicts[name]
+
+    # a model with no equilibrium near a point where the records sat at rest cannot be analysed
+    # there (nor be right there): such candidates compete only when every candidate is one
+    finite = [name for name in scores if np.isfinite(scores[name])] or list(scores)
+    eligible = [name for name in finite if None not in verdicts_of(name)] or finite
+    best = min(eligible, key=lambda name: scores[name])
     chosen = best
     if best == "refined" or best.startswith("pruned"):
         # judged against the full-support refinement they approximate (a pruned model can score a
         # little better than it, which must not narrow the choice)
         reference = max(scores[best], scores.get("refined", scores[best]))
-        near = [name for name in scores
+        near = [name for name in eligible
                 if name.startswith("pruned") and scores[name] <= reference * (1 + tolerance)]
         # the refined model's verdicts, not "stable": a record can start at a weakly unstable
         # equilibrium that 40 ms do not reveal (protocol ug0 up to 1.2, plant boundary 1.166, max
         # Re +0.25 1/s at 1.2): preferring models stable there favours a boundary in the wrong place
         pool = near
         if near and "refined" in candidates:
-            points = template.metadata.get("reference_points") or []
-            verdicts = stability_at_points(candidates["refined"], points)
-            pool = [name for name in near if stability_at_points(candidates[name], points) == verdicts] or near
+            pool = [name for name in near if verdicts_of(name) == verdicts_of("refined")] or near
         chosen = min(pool, key=lambda name: (candidates[name].n_parameters, scores[name])) if pool else best
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
@@ -256,8 +268,12 @@ class PISML(_Estimator):
         self.distilled_ = explicit
         self.metrics_["distill_seconds"] = time.monotonic() - started
         self._emit("distillation", 0.7, losses={"terms": len(explicit.terms), "nonzero": explicit.n_parameters})
-        # 4. fine-tuning of the merged coefficients on trajectories (+ small-signal responses)
+        # 4. the merged terms re-fitted jointly on the data (equation error), then fine-tuning of
+        # the best of those and the merged model on trajectories (+ small-signal responses)
         candidates = {"backbone": backbone, "trained backbone": trained_backbone, "distilled": explicit}
+        started = time.monotonic()
+        candidates.update(_sparse_refits(explicit, train, cfg))
+        self.metrics_["refit_seconds"] = time.monotonic() - started
         if cfg.backbone_noise_correction and _noisy(train):
             compensated = fit_backbone(train, theta_terms, span=cfg.backbone_span, threshold=cfg.backbone_threshold,
                                        alpha=cfg.backbone_alpha, noise_correction=True)
@@ -271,10 +287,14 @@ class PISML(_Estimator):
             preliminary.metadata["stage"] = "explicit (before refinement)"
             self._emit("explicit (before refinement)", 0.7, model=preliminary)
             started = time.monotonic()
-            refined = refine_explicit(explicit, train, smallsignal, cfg,
+            start = min((name for name in candidates if name == "distilled" or name.startswith("re-fit")),
+                        key=lambda name: scores[name])
+            refined = refine_explicit(candidates[start], train, smallsignal, cfg,
                                       lambda progress, losses: self._emit("refinement", 0.7 + 0.28 * progress,
                                                                           losses=losses),
-                                      start_error=scores["distilled"], errors=scores)
+                                      start_error=scores[start], errors=scores)
+            for model in refined.values():
+                model.metadata["refinement"]["start"] = start
             candidates.update(refined)
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the training records when run
@@ -291,6 +311,28 @@ class PISML(_Estimator):
         self.metrics_["hybrid_parameters"] = float(hybrid.n_parameters)
         self._emit("explicit", 1.0, model=explicit)
         return self._finish(explicit, explicit)
+
+
+def _sparse_refits(merged: ExplicitModel, train: Dataset, cfg: IdentConfig) -> dict:
+    """Candidates ``"re-fit +B %"``: the merged model's terms fitted jointly on ``train`` and made
+    sparse (:func:`~.refit.sparse_refit`), one per ``cfg.refit_budgets`` entry B."""
+    from .refit import sparse_refit
+
+    if not cfg.refit_budgets:
+        return {}
+    try:
+        fits = sparse_refit(train, merged.terms, cfg.refit_budgets, span=cfg.refit_span)
+    except (ValueError, np.linalg.LinAlgError) as err:
+        # too little data for the library: the other candidates stand
+        merged.metadata.setdefault("refit_errors", []).append(f"{type(err).__name__}: {err}")
+        return {}
+    out = {}
+    for budget, coef in zip(cfg.refit_budgets, fits):
+        used = np.any(coef != 0, axis=1)
+        out[f"re-fit +{100 * budget:g} %"] = ExplicitModel(
+            merged.state_names, merged.input_names, [t for t, keep in zip(merged.terms, used) if keep], coef[used],
+            {**merged.metadata, "stage": "re-fit", "refit": {"budget": budget, "span": cfg.refit_span}})
+    return out
 
 
 def _noisy(train: Dataset, level: float = 1e-5) -> bool:
