@@ -19,8 +19,9 @@ class IdentConfig:
 
     Attributes are grouped by stage: ``backbone_*`` (sparse physics backbone),
     ``hidden``/``dropout``/``epochs``/... (neural residual trained through the ODE
-    solver), ``lambda_*`` (loss weights), ``distill_*`` (symbolic distillation), ``refit_*`` (sparse re-fit of the merged terms) and
-    ``refine_*`` (fine-tuning of the merged explicit model on trajectories).
+    solver), ``lambda_*`` (loss weights), ``distill_*`` (symbolic distillation), ``refit_*``
+    (sparse re-fit of Θ ∪ Θ_ext on the data) and ``refine_*`` (fine-tuning of an explicit
+    model on trajectories).
     """
 
     roles: SignalRoles = dataclasses.field(default_factory=SignalRoles)
@@ -58,7 +59,7 @@ class IdentConfig:
     distill_samples: int = 20000
     distill_max_terms: int = 6
     distill_spread: float = 0.05
-    # sparse re-fit of the merged model's terms on the data (ident.refit; equation error): one
+    # sparse re-fit of all terms of Θ and Θ_ext on the data (ident.refit; equation error): one
     # candidate per budget (allowed rise of each row's cost over its least-squares minimum); empty: off
     refit_budgets: tuple = (1.0, 3.0, 10.0)
     refit_span: int = 10

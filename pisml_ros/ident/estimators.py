@@ -24,7 +24,7 @@ from ..model import ExplicitModel
 from ..model.expressions import term_set
 from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
-from .library import coupling_separation, extended_library, physics_library
+from .library import coupling_separation, extended_library, monomial_basis, physics_library
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
 
@@ -268,11 +268,12 @@ class PISML(_Estimator):
         self.distilled_ = explicit
         self.metrics_["distill_seconds"] = time.monotonic() - started
         self._emit("distillation", 0.7, losses={"terms": len(explicit.terms), "nonzero": explicit.n_parameters})
-        # 4. the merged terms re-fitted jointly on the data (equation error), then fine-tuning of
-        # the best of those and the merged model on trajectories (+ small-signal responses)
+        # 4. every term of Θ and Θ_ext re-fitted jointly on the data (equation error), then
+        # fine-tuning of the best of those and the merged model on trajectories (+ small-signal responses)
         candidates = {"backbone": backbone, "trained backbone": trained_backbone, "distilled": explicit}
         started = time.monotonic()
-        candidates.update(_sparse_refits(explicit, train, cfg))
+        library, _ = monomial_basis([*theta_terms, *ext], signals)
+        candidates.update(_sparse_refits(explicit, library, train, cfg))
         self.metrics_["refit_seconds"] = time.monotonic() - started
         if cfg.backbone_noise_correction and _noisy(train):
             compensated = fit_backbone(train, theta_terms, span=cfg.backbone_span, threshold=cfg.backbone_threshold,
@@ -313,15 +314,15 @@ class PISML(_Estimator):
         return self._finish(explicit, explicit)
 
 
-def _sparse_refits(merged: ExplicitModel, train: Dataset, cfg: IdentConfig) -> dict:
-    """Candidates ``"re-fit +B %"``: the merged model's terms fitted jointly on ``train`` and made
-    sparse (:func:`~.refit.sparse_refit`), one per ``cfg.refit_budgets`` entry B."""
+def _sparse_refits(merged: ExplicitModel, library: list, train: Dataset, cfg: IdentConfig) -> dict:
+    """Candidates ``"re-fit +B %"``: all of ``library`` fitted jointly on ``train`` and made sparse
+    (:func:`~.refit.sparse_refit`), one per ``cfg.refit_budgets`` entry B; metadata from ``merged``."""
     from .refit import sparse_refit
 
     if not cfg.refit_budgets:
         return {}
     try:
-        fits = sparse_refit(train, merged.terms, cfg.refit_budgets, span=cfg.refit_span)
+        fits = sparse_refit(train, library, cfg.refit_budgets, span=cfg.refit_span)
     except (ValueError, np.linalg.LinAlgError) as err:
         # too little data for the library: the other candidates stand
         merged.metadata.setdefault("refit_errors", []).append(f"{type(err).__name__}: {err}")
@@ -330,7 +331,7 @@ def _sparse_refits(merged: ExplicitModel, train: Dataset, cfg: IdentConfig) -> d
     for budget, coef in zip(cfg.refit_budgets, fits):
         used = np.any(coef != 0, axis=1)
         out[f"re-fit +{100 * budget:g} %"] = ExplicitModel(
-            merged.state_names, merged.input_names, [t for t, keep in zip(merged.terms, used) if keep], coef[used],
+            merged.state_names, merged.input_names, [t for t, keep in zip(library, used) if keep], coef[used],
             {**merged.metadata, "stage": "re-fit", "refit": {"budget": budget, "span": cfg.refit_span}})
     return out
 

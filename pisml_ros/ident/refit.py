@@ -1,19 +1,20 @@
-"""Sparse re-fit of a model's structure on the data, in equation-error (integral) form.
+"""Sparse re-fit of the whole field on the data, in equation-error (integral) form.
 
-The merged explicit model (backbone + distilled residual) has the right *terms* in its library
-but coefficients that come from two separate fits (the backbone's regression, the residual's
-distillation). Here all coefficients over that library are fitted jointly to the measured
+The merged explicit model (backbone + distilled residual) takes its coefficients from two
+separate fits (the backbone's regression, the residual's distillation), and the distillation
+keeps at most a few terms per state. Here every term of a library (PISML uses the monomials of
+Θ and Θ_ext: what the backbone and the distillation search) is fitted jointly to the measured
 increments x(t+s) − x(t) = ∫Θ dt · C (cubic-spline quadrature, windows across input jumps
 dropped), then each state's row is made sparse by backward elimination on its exact quadratic
 cost (:func:`~pisml_ros.ident.trajfit.backward_elimination`): the spurious members of a
 near-collinear group go one at a time, which a one-shot threshold cannot do.
 
-Measured on the clean protocol recordings (three training seeds, the 38-term merged library):
-the sparsest row models within +300 % of each row's least-squares cost reproduce the true
-structure except the smallest terms (72-75 nonzero, the truth has 88), IOD/OOD 0.010/0.015 %,
-in 0.1 s. With measurement noise the equation error is biased (noise in the regressors) and
-these candidates lose the selection to the trajectory-fitted ones (60 dB: 2.6-4.5 % training
-error; 100 dB: some drop integrator terms and lose their equilibrium).
+Measured on the clean protocol recordings (the 54 monomials of Θ ∪ Θ_ext): within +1000 % of
+each row's least-squares cost the rows are the true ones except the smallest terms (72 nonzero,
+the truth has 88; the Pf and Qf rows exactly, with the Rd current×current products),
+IOD/OOD 0.010/0.015 %, in 0.1 s. With measurement noise the equation error is biased (noise in
+the regressors) and these candidates lose the selection to the trajectory-fitted ones (60 dB:
+~4.5 % training error; 100 dB: some drop integrator terms and lose their equilibrium).
 """
 from __future__ import annotations
 
