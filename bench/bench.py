@@ -116,7 +116,7 @@ def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, lab
         return row, None
     row["seconds"] = time.monotonic() - started
     row["n_parameters"] = int(est.model_.n_parameters)
-    for key in ("backbone_seconds", "hybrid_seconds", "distill_seconds", "refine_seconds"):
+    for key in ("backbone_seconds", "hybrid_seconds", "distill_seconds", "refit_seconds", "refine_seconds"):
         if key in est.metrics_:
             row[key] = est.metrics_[key]
     errs = protocol_errors(est.model_, test)

@@ -120,6 +120,26 @@ def test_rk4_agrees_with_lsoda():
         assert rel < 5e-5
 
 
+def test_a_diverging_trajectory_is_nan_without_spoiling_the_others():
+    from pisml_ros.integrate import simulate_many
+
+    class Growth:  # dx/dt = u·x, row by row
+        n_states = 1
+
+        def vector_field(self, x, u):
+            return u * x
+
+    dt = 1e-3
+    preds = simulate_many(Growth(), [np.ones(1), np.ones(1), np.ones(1)],
+                          [np.full((100, 1), 1e4), np.full((100, 1), -1.0), np.full((50, 1), -2.0)], dt)
+    assert np.all(np.isnan(preds[0]))
+    t = np.arange(100) * dt
+    np.testing.assert_allclose(preds[1][:, 0], np.exp(-t), rtol=1e-9)
+    np.testing.assert_allclose(preds[2][:, 0], np.exp(-2 * t[:50]), rtol=1e-9)
+    with pytest.raises(FloatingPointError, match="diverged"):
+        simulate(Growth(), np.ones(1), np.full((100, 1), 1e4), dt)
+
+
 def test_simulation_from_equilibrium_stays_there():
     plant = InverterPlant()
     x0 = plant.equilibrium(0.9)
