@@ -10,9 +10,10 @@ cost (:func:`~pisml_ros.ident.trajfit.backward_elimination`): the spurious membe
 near-collinear group go one at a time, which a one-shot threshold cannot do.
 
 Measured on the clean protocol recordings (the 54 monomials of Θ ∪ Θ_ext): within +1000 % of
-each row's least-squares cost the rows are the true ones except the smallest terms (72 nonzero,
-the truth has 88; the Pf and Qf rows exactly, with the Rd current×current products),
-IOD/OOD 0.010/0.015 %, in 0.1 s. With measurement noise the equation error is biased (noise in
+each row's least-squares cost, 72 nonzero coefficients against the truth's 88, none spurious; the
+Pf and Qf rows exactly the true ones, with the Rd current×current products; missing: eight
+(il − ig) pairs of the controller's cross-couplings (the small capacitor current, nearly
+collinear with the vc terms at these operating points). IOD/OOD 0.010/0.015 %, in 0.1 s. With measurement noise the equation error is biased (noise in
 the regressors) and these candidates lose the selection to the trajectory-fitted ones (60 dB:
 ~4.5 % training error; 100 dB: some drop integrator terms and lose their equilibrium).
 """
@@ -51,7 +52,7 @@ def sparse_refit(dataset: Dataset, terms: Sequence[str], budgets: Sequence[float
     Raises
     ------
     ValueError
-        When the records leave no window of ``span`` samples free of input jumps.
+        When the records hold fewer windows of ``span`` samples free of input jumps than terms.
     """
     signals = tuple(dataset.state_names) + tuple(dataset.input_names)
     a, b = integral_form(dataset, term_set(list(terms), signals), span=span, quadrature="spline")
