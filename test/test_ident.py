@@ -430,6 +430,16 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     two["re-fit +300 %"] = ExplicitModel(("x",), ("u",), ["1", "u"], np.array([[1.0], [-0.5]]), {})
     scores2["re-fit +300 %"] = 0.001
     assert _selected(template, two, scores2, tolerance=0.5).metadata["selection"]["chosen"] == "pruned +1 %"
+    # the refinement starts from the best merged or re-fitted model with those equilibria
+    from pisml_ros.ident.estimators import _refinement_start
+
+    points = template.metadata["reference_points"]
+    starts = {"backbone": two["refined"], "distilled": two["pruned +1 %"], "re-fit +300 %": two["re-fit +300 %"],
+              "re-fit +100 %": two["pruned +0.3 %"]}
+    start_scores = {"backbone": 0.0001, "distilled": 0.5, "re-fit +300 %": 0.001, "re-fit +100 %": 0.2}
+    assert _refinement_start(starts, start_scores, points) == "re-fit +100 %"
+    start_scores["re-fit +100 %"] = float("inf")
+    assert _refinement_start(starts, start_scores, points) == "distilled"
     # where another candidate wins, pruned models do not come back through the tolerance
     scores["backbone"] = 0.02
     assert _selected(candidates["refined"], candidates, scores, tolerance=0.5).metadata["selection"]["chosen"] == "backbone"
