@@ -84,7 +84,22 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
                          "smallsignal_trajectories": len(smallsignal) if smallsignal is not None else 0}}
 
 
-def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0) -> ExplicitModel:
+def _with_equilibria(names, candidates: dict, scores: dict, points: list, verdicts: dict) -> list:
+    """Those of ``names`` with a finite score and an equilibrium at every operating point of
+    ``points``; ``verdicts`` caches :func:`stability_at_points` by candidate name (a fit asks for
+    the same candidates several times)."""
+    out = []
+    for name in names:
+        if np.isfinite(scores[name]):
+            if name not in verdicts:
+                verdicts[name] = stability_at_points(candidates[name], points)
+            if None not in verdicts[name]:
+                out.append(name)
+    return out
+
+
+def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0,
+              verdicts: dict | None = None) -> ExplicitModel:
     """The candidate with the smallest training error, with ``template``'s metadata and the selection.
 
     Only candidates with an equilibrium at every operating point where the training records sat
@@ -96,20 +111,14 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     barely tell them apart from the best, a term the data cannot support is a liability out of
     distribution, and dropping terms must not flip a slow mode the 40 ms records hardly pin.
     (Where another candidate wins, pruning is not considered: on noisy data a refinement that
-    lost should not come back through a tolerance.)
+    lost should not come back through a tolerance.) ``verdicts``: a cache shared across calls.
     """
     points = template.metadata.get("reference_points") or []
-    verdicts = {}
-
-    def verdicts_of(name):
-        if name not in verdicts:
-            verdicts[name] = stability_at_points(candidates[name], points)
-        return verdicts[name]
-
+    verdicts = {} if verdicts is None else verdicts
     # a model with no equilibrium near a point where the records sat at rest cannot be analysed
     # there (nor be right there): such candidates compete only when every candidate is one
     finite = [name for name in scores if np.isfinite(scores[name])] or list(scores)
-    eligible = [name for name in finite if None not in verdicts_of(name)] or finite
+    eligible = _with_equilibria(finite, candidates, scores, points, verdicts) or finite
     best = min(eligible, key=lambda name: scores[name])
     chosen = best
     if best == "refined" or best.startswith("pruned"):
@@ -123,7 +132,9 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
         # Re +0.25 1/s at 1.2): preferring models stable there favours a boundary in the wrong place
         pool = near
         if near and "refined" in candidates:
-            pool = [name for name in near if verdicts_of(name) == verdicts_of("refined")] or near
+            if "refined" not in verdicts:
+                verdicts["refined"] = stability_at_points(candidates["refined"], points)
+            pool = [name for name in near if verdicts[name] == verdicts["refined"]] or near
         chosen = min(pool, key=lambda name: (candidates[name].n_parameters, scores[name])) if pool else best
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
@@ -282,13 +293,14 @@ class PISML(_Estimator):
                                     "noise_std": compensated.metadata["noise_std"]}
             candidates["noise-compensated backbone"] = compensated
         scores = {name: training_error(model, train) for name, model in candidates.items()}
+        verdicts: dict = {}  # stability at the records' rest points, by candidate (selection, refinement start)
         if cfg.refine:
             # refinement takes most of the time: the best explicit model so far goes out first
-            preliminary = _selected(explicit, candidates, scores)
+            preliminary = _selected(explicit, candidates, scores, verdicts=verdicts)
             preliminary.metadata["stage"] = "explicit (before refinement)"
             self._emit("explicit (before refinement)", 0.7, model=preliminary)
             started = time.monotonic()
-            start = _refinement_start(candidates, scores, explicit.metadata.get("reference_points") or [])
+            start = _refinement_start(candidates, scores, explicit.metadata.get("reference_points") or [], verdicts)
             refined = refine_explicit(candidates[start], train, smallsignal, cfg,
                                       lambda progress, losses: self._emit("refinement", 0.7 + 0.28 * progress,
                                                                           losses=losses),
@@ -303,7 +315,7 @@ class PISML(_Estimator):
         scores.update({name: training_error(model, train) for name, model in candidates.items()
                        if name not in scores})
         self.candidates_ = candidates
-        explicit = _selected(explicit, candidates, scores, tolerance=cfg.selection_tolerance)
+        explicit = _selected(explicit, candidates, scores, tolerance=cfg.selection_tolerance, verdicts=verdicts)
         self.metrics_["training_error_pct"] = scores[explicit.metadata["selection"]["chosen"]]
         self._emit("selection", 0.99, losses={f"train_err_{k.replace(' ', '_')}": v for k, v in scores.items()})
         explicit.metadata["stage"] = "explicit"
@@ -313,7 +325,7 @@ class PISML(_Estimator):
         return self._finish(explicit, explicit)
 
 
-def _refinement_start(candidates: dict, scores: dict, points: list) -> str:
+def _refinement_start(candidates: dict, scores: dict, points: list, verdicts: dict | None = None) -> str:
     """The merged (``distilled``) or re-fitted (``re-fit …``) candidate the refinement starts from: the
     best-scoring one with an equilibrium at every operating point in ``points`` (any, if none has).
 
@@ -322,9 +334,8 @@ def _refinement_start(candidates: dict, scores: dict, points: list) -> str:
     reached 0.03 / 0.04 % (100 dB) and 0.34 / 0.75 % (80 dB) IOD/OOD.
     """
     names = [name for name in candidates if name == "distilled" or name.startswith("re-fit")]
-    with_equilibria = [name for name in names if np.isfinite(scores[name])
-                       and None not in stability_at_points(candidates[name], points)]
-    return min(with_equilibria or names, key=lambda name: scores[name])
+    eligible = _with_equilibria(names, candidates, scores, points, {} if verdicts is None else verdicts)
+    return min(eligible or names, key=lambda name: scores[name])
 
 
 def _sparse_refits(merged: ExplicitModel, library: list, train: Dataset, cfg: IdentConfig) -> dict:
