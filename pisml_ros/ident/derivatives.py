@@ -16,7 +16,7 @@ def finite_difference_derivatives(dataset: Dataset, order: int = 2) -> list[np.n
 
 
 def integral_form(dataset: Dataset, terms: TermSet, span: int = 10, stride: int = 1,
-                  quadrature: str = "trapezoid", skip_input_jumps: bool = False):
+                  quadrature: str = "trapezoid"):
     """Integral (weak) form of dx/dt = Θ(x, u) C over windows of ``span`` samples.
 
     x(t_{k+span}) - x(t_k) = ∫ Θ dt · C: a linear least-squares problem A C = B that, unlike
@@ -26,13 +26,11 @@ def integral_form(dataset: Dataset, terms: TermSet, span: int = 10, stride: int 
     ----------
     quadrature : {"trapezoid", "spline"}
         How ∫ Θ dt is computed from the samples: the trapezoid rule, or the integral of the cubic
-        interpolating spline (scipy), in pieces between input jumps (so windows across a jump
-        are dropped, as with ``skip_input_jumps``). On clean protocol data the
-        true equations then fit to ~1e-4 (slow rows) and ~1e-2 (LCL rows) of the increments, where
-        the trapezoid rule leaves 7-9 % in the LCL rows (~6 samples per LCL period).
-    skip_input_jumps : bool
-        Drop the windows in which an input jumps (a grid phase jump or a sag between two samples):
-        no quadrature of the samples integrates a step that falls between them.
+        interpolating spline (scipy), in pieces between input jumps, the windows in which an input
+        jumps dropped (no quadrature of the samples integrates a step that falls between them).
+        On clean protocol data the true equations then fit to ~1e-4 (slow rows) and ~1e-2 (LCL
+        rows) of the increments, where the trapezoid rule leaves 7-9 % in the LCL rows (~6 samples
+        per LCL period).
 
     Returns
     -------
@@ -44,18 +42,15 @@ def integral_form(dataset: Dataset, terms: TermSet, span: int = 10, stride: int 
     rows_a, rows_b = [], []
     for tr in dataset:
         theta = terms.evaluate(np.concatenate([tr.x, tr.u], axis=1))
-        # piece k runs from one input jump to the next (one piece when the inputs never jump)
-        piece = np.concatenate([[0], np.cumsum(input_jumps(tr.u))])
-        split = quadrature == "spline" or skip_input_jumps
-        if split:
+        starts = np.arange(0, len(tr) - span, stride)
+        if quadrature == "spline":
+            # piece k runs from one input jump to the next; each restarts its integral at 0
+            piece = np.concatenate([[0], np.cumsum(input_jumps(tr.u))])
             cum = np.concatenate([_cumulative_integral(theta[piece == k], tr.t[piece == k], quadrature)
                                   for k in range(piece[-1] + 1)])
+            starts = starts[piece[starts + span] == piece[starts]]
         else:
             cum = _cumulative_integral(theta, tr.t, quadrature)
-        starts = np.arange(0, len(tr) - span, stride)
-        if split:
-            # pieces restart their integral at 0: a window across a jump is meaningless then
-            starts = starts[piece[starts + span] == piece[starts]]
         rows_a.append(cum[starts + span] - cum[starts])
         rows_b.append(tr.x[starts + span] - tr.x[starts])
     return np.concatenate(rows_a), np.concatenate(rows_b)
