@@ -84,18 +84,19 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
                          "smallsignal_trajectories": len(smallsignal) if smallsignal is not None else 0}}
 
 
+def _verdicts(name: str, candidates: dict, points: list, cache: dict) -> list:
+    """:func:`stability_at_points` of candidate ``name``, cached by name (a fit asks for the same
+    candidates several times)."""
+    if name not in cache:
+        cache[name] = stability_at_points(candidates[name], points)
+    return cache[name]
+
+
 def _with_equilibria(names, candidates: dict, scores: dict, points: list, verdicts: dict) -> list:
     """Those of ``names`` with a finite score and an equilibrium at every operating point of
-    ``points``; ``verdicts`` caches :func:`stability_at_points` by candidate name (a fit asks for
-    the same candidates several times)."""
-    out = []
-    for name in names:
-        if np.isfinite(scores[name]):
-            if name not in verdicts:
-                verdicts[name] = stability_at_points(candidates[name], points)
-            if None not in verdicts[name]:
-                out.append(name)
-    return out
+    ``points`` (``verdicts``: the :func:`_verdicts` cache)."""
+    return [name for name in names
+            if np.isfinite(scores[name]) and None not in _verdicts(name, candidates, points, verdicts)]
 
 
 def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0,
@@ -132,9 +133,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
         # Re +0.25 1/s at 1.2): preferring models stable there favours a boundary in the wrong place
         pool = near
         if near and "refined" in candidates:
-            if "refined" not in verdicts:
-                verdicts["refined"] = stability_at_points(candidates["refined"], points)
-            pool = [name for name in near if verdicts[name] == verdicts["refined"]] or near
+            refined = _verdicts("refined", candidates, points, verdicts)
+            pool = [name for name in near if _verdicts(name, candidates, points, verdicts) == refined] or near
         chosen = min(pool, key=lambda name: (candidates[name].n_parameters, scores[name])) if pool else best
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
