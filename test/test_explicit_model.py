@@ -118,22 +118,61 @@ def _replay_error(model, coef, data):
     return max(np.linalg.norm(a.x - b.x) / np.linalg.norm(b.x) for a, b in zip(pred, data))
 
 
-@pytest.mark.slow
-def test_refinement_exact_and_iterative_steps_agree(truth):
-    """The dense exact trust-region step (the default at the benchmark's sizes) and LSMR reach the same fit."""
-    from pisml_ros.ident.trajfit import TrajectoryFitter
+def test_shooting_normal_equations_match_autodiff(truth):
+    """The forward sensitivities integrated beside the states give the same Gauss-Newton blocks
+    as torch's autodiff of the residuals, and the profiled Hessian is the Schur complement of the
+    window start states in the dense JᵀJ."""
+    import torch
+
+    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
 
     model, plant = truth
-    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.006, spread=0.01, rng_seed=2)
-    mask = model.coefficients != 0
-    results = {}
-    for name, sizes in (("exact", (0, TrajectoryFitter.exact_range[1])), ("lsmr", (0, 0))):
-        fitter = TrajectoryFitter(model._terms, 13, data.dt, window=10, substeps=2, weights=weights)
-        fitter.exact_range = sizes
-        results[name] = fitter.fit(start, mask, data, lambda_jac=0.0, max_nfev=4)
-    exact = _replay_error(model, results["exact"].coefficients, data)
-    assert exact < 0.2 * _replay_error(model, start, data)
-    assert exact < 2 * _replay_error(model, results["lsmr"].coefficients, data) + 1e-9
+    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.01, rng_seed=2)
+    small = generate(plant, *schedules_for("smallsignal", n_traj=1, duration=0.008))
+    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
+    problem = _ShootingProblem(fitter, start, model.coefficients != 0, data, small, lambda_jac=1.0, ss_stride=5,
+                               lambda_rest=1.0)
+    assert problem.rest is not None  # the records start at rest
+    theta = torch.tensor(start.ravel()[problem.idx] / problem.scale)
+    z = 0.1 * torch.randn((problem.n_windows, 13), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+    def residuals(theta, z):  # the trajectory residuals written plainly, (windows, samples, states)
+        c = problem._matrix(theta)
+        x = problem.X[:, 0] + z * problem.x_unit
+        out = [(x - problem.X[:, 0]) * problem.res_weight]
+        for k in range(problem.window):
+            u = problem.U[:, k]
+            for _ in range(problem.substeps):
+                f = lambda y: model._terms.evaluate_torch(torch.cat([y, u], -1)) @ c  # noqa: E731
+                k1 = f(x)
+                k2 = f(x + 0.5 * problem.h * k1)
+                k3 = f(x + 0.5 * problem.h * k2)
+                k4 = f(x + problem.h * k3)
+                x = x + problem.h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            out.append((x - problem.X[:, k + 1]) * problem.res_weight)
+        return torch.stack(out, 1).reshape(problem.n_windows, -1)
+
+    n_win = problem.n_windows
+    jc = torch.func.jacfwd(residuals, argnums=0)(theta, z)
+    jz_all = torch.func.jacfwd(residuals, argnums=1)(theta, z)
+    jz = torch.stack([jz_all[w, :, w, :] for w in range(n_win)])
+    js = torch.func.jacfwd(problem._static_residuals)(theta)
+    r, rs = residuals(theta, z), problem._static_residuals(theta)
+    blocks = problem.normal_equations(theta, z)
+    expected = {"H": torch.einsum("wrc,wrd->cd", jc, jc) + js.T @ js, "g": torch.einsum("wrc,wr->c", jc, r) + js.T @ rs,
+                "A": jz.transpose(1, 2) @ jz, "E": jz.transpose(1, 2) @ jc, "bz": torch.einsum("wrk,wr->wk", jz, r)}
+    for name, value in expected.items():
+        np.testing.assert_allclose(blocks[name].numpy(), value.numpy(), rtol=1e-9, atol=1e-9 * float(value.abs().max()))
+    assert problem.cost(theta, z) == pytest.approx(0.5 * float((r ** 2).sum() + (rs ** 2).sum()), rel=1e-12)
+    # the profiled Hessian: the Schur complement of the start states in the dense JᵀJ
+    dense = torch.cat([torch.cat([jc.reshape(-1, jc.shape[-1]), torch.block_diag(*jz)], dim=1),
+                       torch.cat([js, torch.zeros((js.shape[0], 13 * n_win))], dim=1)]).numpy()
+    n_c = problem.idx.size
+    h = dense.T @ dense
+    schur = h[:n_c, :n_c] - h[:n_c, n_c:] @ np.linalg.solve(h[n_c:, n_c:], h[n_c:, :n_c])
+    expected_h = schur / np.outer(problem.scale, problem.scale)
+    np.testing.assert_allclose(problem.profiled_hessian(blocks), expected_h, rtol=1e-6,
+                               atol=1e-9 * np.abs(expected_h).max())
 
 
 def test_refinement_stops_when_told_the_fit_is_not_improving(truth):

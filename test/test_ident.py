@@ -151,23 +151,6 @@ def test_backward_elimination_drops_collinear_spurious_terms():
     assert np.count_nonzero(large[1]) < 3
 
 
-def test_profiled_hessian_is_the_schur_complement_for_dense_and_sparse_jacobians():
-    import scipy.sparse
-
-    from pisml_ros.ident.trajfit import _profiled_hessian
-
-    rng = np.random.default_rng(0)
-    n_c, n_win, n = 6, 5, 3  # coefficients, then block-diagonal start-state columns (one block per window)
-    jx = np.zeros((100, n_win * n))
-    for w in range(n_win):
-        jx[w * 20:(w + 1) * 20, w * n:(w + 1) * n] = rng.standard_normal((20, n))
-    jac = np.hstack([rng.standard_normal((100, n_c)), jx])
-    # minimising over the other parameters: the inverse of the coefficients' block of (JᵀJ)⁻¹
-    expected = np.linalg.inv(np.linalg.inv(jac.T @ jac)[:n_c, :n_c])
-    np.testing.assert_allclose(_profiled_hessian(jac, n_c), expected, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(_profiled_hessian(scipy.sparse.csr_matrix(jac), n_c), expected, rtol=1e-9, atol=1e-9)
-
-
 def test_couplings_are_kept_only_where_the_data_separate_them(plant, train):
     roles = IdentConfig().roles
     assert roles.frequency == "Pf"

@@ -1,22 +1,24 @@
 """Coefficient refinement on trajectories (multiple shooting) and small-signal responses.
 
-Given a fixed structure (terms and a support mask), the coefficients are fitted
-by Levenberg-Marquardt-type least squares (scipy ``least_squares``, trust
-region) with Jacobians from torch forward-mode autodiff (``torch.func.jacfwd``):
+Given a fixed structure (terms and a support mask), the coefficients are fitted by
+Levenberg-Marquardt least squares over three residual kinds:
 
-- trajectory residuals: windows of ``window`` samples start at measured states
-  and are integrated with RK4 (``substeps`` per sample); residuals are
-  noise-weighted per state;
+- trajectory residuals: windows of ``window`` samples start at fitted start states
+  (full multiple shooting) and are integrated with RK4 (``substeps`` per sample);
+  residuals are noise-weighted per state;
 - small-signal (Jacobian-consistency) residuals: around the pre-step steady state
   of each small-signal record, the model's linearisation (A = ∂f/∂x, B = ∂f/∂u)
   must reproduce the measured deviation Δx(t) over the whole record (exact
   zero-order-hold discretisation by matrix exponential). This is what pins the
-  slow droop/power modes that 40 ms trajectories cannot.
+  slow droop/power modes that 40 ms trajectories cannot;
+- rest-point residuals (optional): where a record starts in steady state, the
+  model's equilibrium must lie at the measured mean.
 
-The fit also returns the Gauss-Newton Hessian of its cost (window starts profiled out), from
-which :func:`backward_elimination` derives sparser models without integrating again.
-Hand-written because no library fits ODE coefficients through an integrator
-with these two residual kinds; scipy provides the solver, torch the derivatives.
+The Gauss-Newton normal equations come from forward sensitivities integrated beside
+the states, with the window start states eliminated per window (Schur complement):
+every step is exact, at any problem size. The fit also returns the Gauss-Newton
+Hessian of its cost (window starts profiled out), from which
+:func:`backward_elimination` derives sparser models without integrating again.
 """
 from __future__ import annotations
 
@@ -24,8 +26,6 @@ import dataclasses
 import time
 
 import numpy as np
-import scipy.optimize
-import scipy.sparse
 
 from ..data import Dataset
 from ..data.dataset import steady_start_length
@@ -44,12 +44,6 @@ class FitResult:
     # coefficient matrix), the window start states profiled out; for pruning (:func:`backward_elimination`)
     hessian: np.ndarray | None = None
     support: np.ndarray | None = None
-
-
-class _Abandon(Exception):
-    def __init__(self, params):
-        super().__init__("refinement abandoned")
-        self.params = params
 
 
 def _steady_start(tr, min_samples=5):
@@ -71,15 +65,9 @@ class TrajectoryFitter:
         RK4 steps per sample.
     weights : ndarray, shape (n_states,)
         Residual weight per state (1/noise std).
-    exact_range : (int, int)
-        Dense Jacobian sizes (rows × parameters) whose trust-region steps are solved exactly (SVD);
-        others use LSMR.
+    max_windows : int, optional
+        Use at most this many windows, evenly spread (:func:`~.derivatives.trajectory_windows`).
     """
-
-    # Below ~2e6 entries LSMR is cheap and its regularised inexact steps converge at least as fast
-    # on collinear coefficients; above it LSMR needed thousands of products per step (~7 s at the
-    # benchmark's 2e7) where the exact step takes well under a second; above 4e7 memory decides.
-    exact_range = (2_000_000, 40_000_000)
 
     def __init__(self, terms: TermSet, n_states: int, dt: float, window: int = 50, substeps: int = 2,
                  weights=None, max_windows: int | None = None):
@@ -93,7 +81,8 @@ class TrajectoryFitter:
 
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
-            on_evaluation=None, keep_going=None, fit_starts_first: bool = False) -> FitResult:
+            on_evaluation=None, keep_going=None, fit_starts_first: bool = False,
+            lambda_rest: float = 0.0) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -104,213 +93,322 @@ class TrajectoryFitter:
             Records that start in steady state and then see a small input step.
         lambda_jac : float
             Weight of the small-signal residuals (0 switches them off).
+        lambda_rest : float
+            Weight of the rest-point residuals (0 switches them off): where a record (training or
+            small-signal) starts in steady state, the model's equilibrium at its inputs must lie at
+            the measured mean, to the mean's noise.
+        max_nfev : int
+            Cost evaluations (the start and every trial step).
+        on_evaluation : callable, optional
+            ``on_evaluation(nfev, cost)`` after every cost evaluation.
         fit_starts_first : bool
-            First fit the window start states alone (coefficients fixed; a cheap, sparse problem).
-            On noisy data a start at the measured sample excites the fast modes for the whole
-            window; the joint fit then begins where the windows already follow the model.
+            First fit the window start states alone (coefficients fixed; independent 13-dimensional
+            problems). On noisy data a start at the measured sample excites the fast modes for the
+            whole window; the joint fit then begins where the windows already follow the model.
         keep_going : callable, optional
-            ``keep_going(coefficients) -> bool``, asked at every accepted point (Jacobian
-            evaluation) after the start; False stops the fit there (``FitResult.abandoned``). The
-            multiple-shooting cost always decreases, but on noisy data the free-run error of the
-            model can grow meanwhile: this lets a caller stop paying for such a fit.
+            ``keep_going(coefficients) -> bool``, asked at every accepted point after the start;
+            False stops the fit there (``FitResult.abandoned``). The multiple-shooting cost always
+            decreases, but on noisy data the free-run error of the model can grow meanwhile: this
+            lets a caller stop paying for such a fit.
         """
         import torch
-        from torch.func import jacfwd
+
+        problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride, lambda_rest)
+        started = time.monotonic()
+        theta = torch.tensor(coef0.ravel()[problem.idx] / problem.scale)
+        z = torch.zeros((problem.n_windows, self.n_states))
+        if fit_starts_first:
+            z = problem.fit_starts(theta, z)
+        nfev = 0
+
+        def evaluate(th, zz):
+            nonlocal nfev
+            nfev += 1
+            value = problem.cost(th, zz)
+            if on_evaluation is not None:
+                on_evaluation(nfev, value)
+            return value
+
+        cost = evaluate(theta, z)
+        normal = problem.normal_equations(theta, z)
+        mu, nu = 1e-3, 2.0
+        while nfev < max_nfev:
+            step_theta, step_z, predicted = problem.damped_step(normal, mu)
+            trial = evaluate(theta + step_theta, z + step_z)
+            if trial < cost:
+                # Nielsen's update of the Levenberg-Marquardt damping from the gain ratio
+                gain = (cost - trial) / max(predicted, 1e-300)
+                mu *= max(1.0 / 3.0, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3)
+                nu = 2.0
+                theta, z, fall, cost = theta + step_theta, z + step_z, cost - trial, trial
+                if keep_going is not None and not keep_going(problem.coefficients(theta)):
+                    return FitResult(problem.coefficients(theta), cost, nfev, time.monotonic() - started,
+                                     abandoned=True)
+                normal = problem.normal_equations(theta, z)
+                if fall <= 1e-8 * cost:
+                    break
+            else:
+                mu *= nu
+                nu *= 2.0
+                if mu > 1e10:
+                    break
+        return FitResult(problem.coefficients(theta), cost, nfev, time.monotonic() - started,
+                         hessian=problem.profiled_hessian(normal), support=problem.idx)
+
+
+class _ShootingProblem:
+    """The multiple-shooting least-squares problem of one :meth:`TrajectoryFitter.fit` call.
+
+    Parameters are the scaled support coefficients θ (coefficient / ``scale``) and each window's
+    start-state offset z (in noise units). The Gauss-Newton normal equations come from forward
+    sensitivities integrated beside the states (f is linear in the coefficients, so ∂f/∂c is a term
+    value); the start states are eliminated window by window (Schur complement, as in bundle
+    adjustment), so every step is exact at any problem size. Hand-written because neither scipy
+    nor torch solves least squares with this block structure: ``scipy.optimize.least_squares`` on
+    the full sparse Jacobian needed thousands of LSMR products per step at the benchmark's sizes.
+    """
+
+    def __init__(self, fitter: TrajectoryFitter, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
+                 lambda_rest):
+        import torch
 
         torch.set_default_dtype(torch.float64)
-        n = self.n_states
-        xw, uw = trajectory_windows(train, self.window, max_windows=self.max_windows)
-        X = torch.tensor(xw)
-        U = torch.tensor(uw)
-        w = torch.tensor(self.weights)
-        idx = np.flatnonzero(mask.ravel())
-        idx_t = torch.tensor(idx)
-        scale = np.abs(coef0.ravel()[idx])
-        scale = np.where(scale > 0, scale, 1.0) + 1e-3 * np.abs(coef0).max()
-        scale_t = torch.tensor(scale)
-        h = self.dt / self.substeps
-        terms = self.terms
-
-        ss = []
+        self.torch = torch
+        self.terms = fitter.terms
+        self.n = n = fitter.n_states
+        self.window = fitter.window
+        self.substeps = fitter.substeps
+        self.h = fitter.dt / fitter.substeps
+        xw, uw = trajectory_windows(train, fitter.window, max_windows=fitter.max_windows)
+        self.X = torch.tensor(xw)
+        self.U = torch.tensor(uw)
+        self.n_windows = self.X.shape[0]
+        self.shape = coef0.shape
+        self.idx = np.flatnonzero(mask.ravel())
+        scale = np.abs(coef0.ravel()[self.idx])
+        self.scale = np.where(scale > 0, scale, 1.0) + 1e-3 * np.abs(coef0).max()
+        # which term and which state equation each support coefficient belongs to
+        self.term_of = torch.tensor(self.idx // self.shape[1])
+        self.row_of = torch.tensor(self.idx % self.shape[1])
+        self.scale_t = torch.tensor(self.scale)
+        # residuals are (x - x_measured) * weight / sqrt(window + 1); z is in units of 1 / weight
+        self.res_weight = torch.tensor(fitter.weights) / np.sqrt(fitter.window + 1)
+        self.x_unit = torch.tensor(1.0 / fitter.weights)
+        self.ss = []
         if smallsignal is not None and lambda_jac > 0:
             for tr in smallsignal:
                 k0 = _steady_start(tr)
                 if k0 == 0:
                     continue
                 x_eq = tr.x[:k0].mean(axis=0)
-                u_eq = tr.u[0]
                 dx = tr.x[k0 - 1::ss_stride] - x_eq
-                du = tr.u[k0 - 1::ss_stride] - u_eq
-                z = np.concatenate([x_eq, u_eq])
-                grad = terms.gradient(z)  # (n_terms, n_signals)
+                du = tr.u[k0 - 1::ss_stride] - tr.u[0]
+                grad = self.terms.gradient(np.concatenate([x_eq, tr.u[0]]))  # (n_terms, n_signals)
                 # the linearisation itself is only good to ~1 % of the deviation for 1 % steps
-                w_ss = 1.0 / np.sqrt((1.0 / self.weights) ** 2 + (0.01 * dx.std(axis=0)) ** 2 + 1e-30)
-                ss.append((torch.tensor(grad), torch.tensor(dx), torch.tensor(du), torch.tensor(w_ss)))
-        ss_dt = self.dt * ss_stride
-        sqrt_lj = float(np.sqrt(lambda_jac))
+                w_ss = 1.0 / np.sqrt((1.0 / fitter.weights) ** 2 + (0.01 * dx.std(axis=0)) ** 2 + 1e-30)
+                self.ss.append((torch.tensor(grad), torch.tensor(dx), torch.tensor(du), torch.tensor(w_ss)))
+        self.ss_dt = fitter.dt * ss_stride
+        self.sqrt_lj = float(np.sqrt(lambda_jac))
+        # rest points: where a record starts in steady state, its mean there is an equilibrium of
+        # the plant, known to the noise / sqrt(samples)
+        rest = []
+        for tr in [*train, *(smallsignal or [])]:
+            k0 = _steady_start(tr)
+            if k0:
+                rest.append((np.concatenate([tr.x[:k0].mean(axis=0), tr.u[0]]), k0))
+        self.rest = None
+        if rest and lambda_rest > 0:
+            z_rest = np.array([r[0] for r in rest])
+            self.rest = (torch.tensor(self.terms.evaluate(z_rest)), torch.tensor(self.terms.gradient(z_rest)[..., :n]),
+                         torch.tensor(np.sqrt(lambda_rest * np.array([r[1] for r in rest]) / (fitter.window + 1))))
+        self._term_gradient = torch.func.vmap(torch.func.jacfwd(self.terms.evaluate_torch))
 
-        def coefficients(theta):
-            flat = torch.zeros(coef0.size, dtype=theta.dtype)
-            flat = flat.index_put((idx_t,), theta * scale_t)
-            return flat.reshape(coef0.shape)
+    def coefficients(self, theta) -> np.ndarray:
+        out = np.zeros(int(np.prod(self.shape)))
+        out[self.idx] = np.asarray(theta) * self.scale
+        return out.reshape(self.shape)
 
-        n_win = X.shape[0]
-        x_scale = torch.tensor(1.0 / self.weights)
+    def _matrix(self, theta):
+        torch = self.torch
+        flat = torch.zeros(int(np.prod(self.shape)), dtype=theta.dtype)
+        return flat.index_put((torch.tensor(self.idx),), theta * self.scale_t).reshape(self.shape)
 
-        def trajectory_residuals(theta, x_start):
-            """Residuals of all windows; the window start states are parameters too
-            (full multiple shooting: noisy measured starts would bias the coefficients)."""
-            c = coefficients(theta)
-            x = x_start
-            out = [((x - X[:, 0]) * w).reshape(-1)]
-            for k in range(self.window):
-                u = U[:, k]
-                for _ in range(self.substeps):
-                    f = lambda y: terms.evaluate_torch(torch.cat([y, u], dim=-1)) @ c  # noqa: E731
-                    k1 = f(x)
-                    k2 = f(x + 0.5 * h * k1)
-                    k3 = f(x + 0.5 * h * k2)
-                    k4 = f(x + h * k3)
+    def _shoot(self, theta, z, tangents: str = ""):
+        """Integrate every window from its start; residuals, and the Gauss-Newton blocks when
+        ``tangents`` names them ("z": start states only; "zc": also the coefficients).
+
+        Returns (cost of the trajectory residuals, blocks or None).
+        """
+        torch = self.torch
+        c = self._matrix(theta)
+        n, h, n_win, n_c = self.n, self.h, self.n_windows, self.idx.size
+        x = self.X[:, 0] + z * self.x_unit
+        u_all = self.U
+        w = self.res_weight
+        cost = 0.0
+        blocks = None
+        if tangents:
+            # d x / d z (each window's own starts) and d x / d theta, per window
+            s_z = torch.diag(self.x_unit).expand(n_win, n, n).clone()
+            s_c = torch.zeros((n_win, n, n_c)) if "c" in tangents else None
+            blocks = {"A": torch.zeros((n_win, n, n)), "bz": torch.zeros((n_win, n))}
+            if s_c is not None:
+                blocks.update(H=torch.zeros((n_c, n_c)), g=torch.zeros(n_c), E=torch.zeros((n_win, n, n_c)))
+
+        def accumulate(x, k):
+            nonlocal cost
+            r = torch.nan_to_num((x - self.X[:, k]) * w, nan=1e6, posinf=1e6, neginf=-1e6).clamp(-1e6, 1e6)
+            cost += 0.5 * float((r * r).sum())
+            if blocks is None:
+                return
+            jz = torch.nan_to_num(s_z * w[None, :, None])
+            blocks["A"] += jz.transpose(1, 2) @ jz
+            blocks["bz"] += (jz.transpose(1, 2) @ r[..., None])[..., 0]
+            if s_c is not None:
+                jc = torch.nan_to_num(s_c * w[None, :, None])
+                flat = jc.reshape(-1, n_c)
+                blocks["H"] += flat.T @ flat
+                blocks["g"] += flat.T @ r.reshape(-1)
+                blocks["E"] += jz.transpose(1, 2) @ jc
+
+        def stage(y, u, y_z, y_c):
+            signals = torch.cat([y, u], dim=-1)
+            values = self.terms.evaluate_torch(signals)  # (n_win, n_terms)
+            k = values @ c
+            if blocks is None:
+                return k, None, None
+            jx = torch.einsum("wts,tj->wjs", self._term_gradient(signals)[..., :n], c)  # (n_win, n, n)
+            k_z = jx @ y_z
+            k_c = None
+            if y_c is not None:
+                k_c = jx @ y_c
+                # f is linear in the coefficients: d f_j / d c_(term, j) is the term's value
+                k_c[:, self.row_of, torch.arange(n_c)] += values[:, self.term_of] * self.scale_t
+            return k, k_z, k_c
+
+        accumulate(x, 0)
+        for k in range(self.window):
+            u = u_all[:, k]
+            for _ in range(self.substeps):
+                if blocks is None:
+                    with torch.no_grad():
+                        k1 = stage(x, u, None, None)[0]
+                        k2 = stage(x + 0.5 * h * k1, u, None, None)[0]
+                        k3 = stage(x + 0.5 * h * k2, u, None, None)[0]
+                        k4 = stage(x + h * k3, u, None, None)[0]
                     x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-                out.append(((x - X[:, k + 1]) * w).reshape(-1))
-            return torch.stack(out).reshape(-1) / np.sqrt(len(out))
+                    continue
+                k1, z1, c1 = stage(x, u, s_z, s_c)
+                k2, z2, c2 = stage(x + 0.5 * h * k1, u, s_z + 0.5 * h * z1,
+                                   None if s_c is None else s_c + 0.5 * h * c1)
+                k3, z3, c3 = stage(x + 0.5 * h * k2, u, s_z + 0.5 * h * z2,
+                                   None if s_c is None else s_c + 0.5 * h * c2)
+                k4, z4, c4 = stage(x + h * k3, u, s_z + h * z3, None if s_c is None else s_c + h * c3)
+                x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+                s_z = s_z + (h / 6.0) * (z1 + 2 * z2 + 2 * z3 + z4)
+                if s_c is not None:
+                    s_c = s_c + (h / 6.0) * (c1 + 2 * c2 + 2 * c3 + c4)
+            accumulate(x, k + 1)
+        return cost, blocks
 
-        def smallsignal_residuals(theta):
-            c = coefficients(theta)
-            res = []
-            for grad, dx, du, w_ss in ss:
-                jac = c.T @ grad  # (n_states, n_signals)
-                m = torch.cat([torch.cat([jac[:, :n], jac[:, n:]], dim=1),
-                               torch.zeros((du.shape[1], n + du.shape[1]), dtype=c.dtype)], dim=0)
-                disc = torch.linalg.matrix_exp(m * ss_dt)
-                ad, bd = disc[:n, :n], disc[:n, n:]
-                # the record is in steady state before the step: a start at the first (noisy)
-                # deviation sample would ring the fast modes through the whole record
-                y = torch.zeros_like(dx[0])
-                preds = [y]
-                for k in range(dx.shape[0] - 1):
-                    y = ad @ y + bd @ du[k]
-                    preds.append(y)
-                pred = torch.stack(preds)
-                res.append(sqrt_lj * ((pred - dx) * w_ss).reshape(-1) / np.sqrt(dx.shape[0]))
-            return torch.cat(res) if res else torch.zeros(0)
+    def _smallsignal_residuals(self, theta):
+        """Around the pre-step steady state of each small-signal record, the model's linearisation
+        (exact zero-order-hold discretisation) must reproduce the measured deviation."""
+        torch = self.torch
+        c = self._matrix(theta)
+        n = self.n
+        res = []
+        for grad, dx, du, w_ss in self.ss:
+            jac = c.T @ grad  # (n_states, n_signals)
+            m = torch.cat([jac, torch.zeros((du.shape[1], n + du.shape[1]), dtype=c.dtype)], dim=0)
+            disc = torch.linalg.matrix_exp(m * self.ss_dt)
+            ad, bd = disc[:n, :n], disc[:n, n:]
+            # the record is in steady state before the step: a start at the first (noisy) deviation
+            # sample would ring the fast modes through the whole record
+            y = torch.zeros_like(dx[0])
+            preds = [y]
+            for k in range(dx.shape[0] - 1):
+                y = ad @ y + bd @ du[k]
+                preds.append(y)
+            res.append(self.sqrt_lj * ((torch.stack(preds) - dx) * w_ss).reshape(-1) / np.sqrt(dx.shape[0]))
+        return torch.cat(res) if res else torch.zeros(0)
 
-        n_c = idx.size
-        n_x = n_win * n
-        x0_meas = X[:, 0]
+    def _rest_residuals(self, theta):
+        """How far the model's equilibrium lies from each rest point, by one Newton step from the
+        measured mean (x_eq - x̄ ≈ -J(x̄)⁻¹ f(x̄)), in noise units of the mean: this pins the steady
+        state that windows of a few ms barely see drift from."""
+        torch = self.torch
+        if self.rest is None:
+            return torch.zeros(0)
+        values, gradient, weight = self.rest
+        c = self._matrix(theta)
+        f = values @ c  # (n_rest, n)
+        jac = torch.einsum("rts,tj->rjs", gradient, c)
+        step = torch.linalg.solve(jac, f[..., None])[..., 0]
+        return (step / self.x_unit * weight[:, None]).reshape(-1)
 
-        def split(params):
-            theta = params[:n_c]
-            x_start = x0_meas + params[n_c:].reshape(n_win, n) * x_scale
-            return theta, x_start
+    def _static_residuals(self, theta):
+        return self.torch.cat([self._smallsignal_residuals(theta), self._rest_residuals(theta)])
 
-        def all_residuals(params):
-            theta, x_start = split(params)
-            return torch.cat([trajectory_residuals(theta, x_start), smallsignal_residuals(theta)])
+    def cost(self, theta, z) -> float:
+        with self.torch.no_grad():
+            traj, _ = self._shoot(theta, z)
+            static = self._static_residuals(theta)
+        value = traj + 0.5 * float((static * static).sum())
+        return value if np.isfinite(value) else np.inf
 
-        jac_theta = jacfwd(lambda th, xs: torch.cat([trajectory_residuals(th, xs), smallsignal_residuals(th)]))
-        started = time.monotonic()
-
-        calls = [0]
-
-        def residual_vector(params):
-            with torch.no_grad():
-                r = all_residuals(torch.tensor(params)).numpy()
-            # a trial step that makes a window blow up is just a bad step (large, finite residuals)
-            return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
-
-        def fun(params):
-            r = residual_vector(params)
-            calls[0] += 1
-            if on_evaluation is not None:
-                on_evaluation(calls[0], float(0.5 * r @ r))
-            return r
-
-        jac_calls = [0]
-
-        def start_jacobian(theta, x_start, n_rows, offset):
-            # windows are independent: one forward tangent per state component covers all windows,
-            # the n tangents in one batched (vmap) pass
-            directions = torch.zeros((n,) + tuple(x_start.shape), dtype=x_start.dtype)
-            directions[torch.arange(n), :, torch.arange(n)] = x_scale[:, None]
-            tangents = torch.func.vmap(lambda d: torch.func.jvp(lambda xs: trajectory_residuals(theta, xs),
-                                                                (x_start,), (d,))[1])(directions)
-            return _start_state_block(tangents.numpy(), n_win, n_rows, offset)
-
-        def jac(params):
-            jac_calls[0] += 1
-            if keep_going is not None and jac_calls[0] > 1:
-                if not keep_going(to_coefficients(params)):
-                    raise _Abandon(params)
-            theta, x_start = split(torch.tensor(params))
-            dense = jac_theta(theta, x_start).numpy()  # (n_res, n_c)
-            sparse = start_jacobian(theta, x_start, dense.shape[0], n_c)
-            dense_full = scipy.sparse.csr_matrix(np.hstack([np.where(np.isfinite(dense), dense, 0.0),
-                                                            np.zeros((dense.shape[0], n_x))]))
-            full = dense_full + sparse
-            return full.toarray() if exact else full
-
-        def to_coefficients(params):
-            out = np.zeros(coef0.size)
-            out[idx] = np.asarray(params)[:n_c] * scale
-            return out.reshape(coef0.shape)
-
-        theta0 = np.concatenate([coef0.ravel()[idx] / scale, np.zeros(n_x)])
+    def normal_equations(self, theta, z) -> dict:
+        torch = self.torch
         with torch.no_grad():
-            n_rows = int(all_residuals(torch.tensor(theta0)).numel())
-        if fit_starts_first:
-            # the start states alone, coefficients fixed: independent windows, a sparse, cheap problem
-            fixed = theta0[:n_c]
-            theta0[n_c:] = scipy.optimize.least_squares(
-                lambda p: residual_vector(np.concatenate([fixed, p])), theta0[n_c:],
-                jac=lambda p: start_jacobian(*split(torch.tensor(np.concatenate([fixed, p]))), n_rows, 0),
-                method="trf", tr_solver="lsmr", max_nfev=10, x_scale="jac").x
-        exact = self.exact_range[0] <= n_rows * (n_c + n_x) <= self.exact_range[1]
-        try:
-            result = scipy.optimize.least_squares(fun, theta0, jac=jac, method="trf", x_scale="jac",
-                                                  max_nfev=max_nfev, tr_solver="exact" if exact else "lsmr")
-        except _Abandon as stop:
-            r = residual_vector(stop.params)
-            return FitResult(to_coefficients(stop.params), float(0.5 * r @ r), calls[0], time.monotonic() - started,
-                             abandoned=True)
-        coef = to_coefficients(result.x).ravel()
-        hessian = _profiled_hessian(result.jac, n_c) / np.outer(scale, scale)
-        return FitResult(coef.reshape(coef0.shape), float(result.cost), int(result.nfev),
-                         time.monotonic() - started, hessian=hessian, support=idx)
+            _, blocks = self._shoot(theta, z, "zc")
+        if (self.ss or self.rest is not None) and self.idx.size:
+            r = self._static_residuals(theta).detach()
+            j = torch.nan_to_num(torch.func.jacfwd(self._static_residuals)(theta))
+            blocks["H"] += j.T @ j
+            blocks["g"] += j.T @ torch.nan_to_num(r)
+        return blocks
 
+    def damped_step(self, blocks, mu):
+        """The Levenberg-Marquardt step (Marquardt's diagonal scaling) with the start states
+        eliminated; returns (Δθ, Δz, predicted cost reduction)."""
+        torch = self.torch
+        d_c = torch.diagonal(blocks["H"]).clamp_min(1e-12)
+        d_z = torch.diagonal(blocks["A"], dim1=1, dim2=2).clamp_min(1e-12)
+        a = blocks["A"] + torch.diag_embed(mu * d_z)
+        a_e = torch.linalg.solve(a, blocks["E"])
+        a_b = torch.linalg.solve(a, blocks["bz"][..., None])[..., 0]
+        reduced = blocks["H"] + torch.diag(mu * d_c) - torch.einsum("wkc,wkd->cd", blocks["E"], a_e)
+        g = blocks["g"] - torch.einsum("wkc,wk->c", blocks["E"], a_b)
+        step_c = -torch.linalg.lstsq(reduced, g[:, None]).solution[:, 0] if g.numel() else g
+        step_z = -(a_b + torch.einsum("wkc,c->wk", a_e, step_c))
+        # model reduction -(g·δ + ½ δᵀJᵀJδ) = ½ δᵀ(μD)δ - ½ gᵀδ for the exact damped step
+        predicted = 0.5 * float(mu * (d_c * step_c ** 2).sum() + mu * (d_z * step_z ** 2).sum()
+                                - (blocks["g"] * step_c).sum() - (blocks["bz"] * step_z).sum())
+        return step_c, step_z, predicted
 
-def _start_state_block(tangents: np.ndarray, n_win: int, n_rows: int, offset: int) -> "scipy.sparse.csr_matrix":
-    """The sparse Jacobian block of the window start states from the ``n`` batched tangents
-    (tangent k: every window's start component k moved by its scale), in columns ``offset`` on.
+    def fit_starts(self, theta, z, iterations: int = 3):
+        """Gauss-Newton on the window start states alone (independent per window)."""
+        torch = self.torch
+        cost = self.cost(theta, z)
+        for _ in range(iterations):
+            with torch.no_grad():
+                _, blocks = self._shoot(theta, z, "z")
+            a = blocks["A"] + 1e-9 * torch.diag_embed(torch.diagonal(blocks["A"], dim1=1, dim2=2))
+            trial = z - torch.linalg.solve(a, blocks["bz"][..., None])[..., 0]
+            trial_cost = self.cost(theta, trial)
+            if not trial_cost < cost:
+                break
+            z, cost = trial, trial_cost
+        return z
 
-    Residual layout (steps, windows, states): entry (step, win, s) depends on the starts of
-    window ``win`` only. Rows past the trajectory residuals (small-signal ones) stay empty.
-    """
-    n = tangents.shape[0]
-    steps = tangents[0].size // (n_win * n)
-    r_index = np.arange(steps * n_win * n).reshape(steps, n_win, n)
-    rows = np.concatenate([r_index.ravel()] * n)
-    cols = np.concatenate([(offset + np.arange(n_win)[None, :, None] * n + k + 0 * r_index).ravel()
-                           for k in range(n)])
-    vals = np.concatenate([np.where(np.isfinite(t), t, 0.0).ravel() for t in tangents])
-    return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n_rows, offset + n_win * n))
-
-
-def _profiled_hessian(jac, n_c: int) -> np.ndarray:
-    """JᵀJ of the first ``n_c`` parameters with the others (window start states) minimised out
-    (Schur complement): the curvature of the cost when the starts re-adjust to a coefficient change."""
-    if scipy.sparse.issparse(jac):
-        # the fit used LSMR (a large problem): keep the start-state block sparse, no dense copy
-        jac = jac.tocsc()
-        jc, jx = jac[:, :n_c].toarray(), jac[:, n_c:]
-        h_xc, h_xx = np.asarray(jx.T @ jc), (jx.T @ jx).toarray()
-    else:
-        jc, jx = jac[:, :n_c], jac[:, n_c:]
-        h_xc, h_xx = jx.T @ jc, jx.T @ jx
-    h_cc = jc.T @ jc
-    if h_xx.size == 0:
-        return h_cc
-    return h_cc - h_xc.T @ np.linalg.lstsq(h_xx, h_xc, rcond=1e-12)[0]
+    def profiled_hessian(self, blocks) -> np.ndarray:
+        """JᵀJ of the coefficients with the window start states minimised out (Schur complement):
+        the curvature of the cost when the starts re-adjust to a coefficient change, in
+        coefficient units (for :func:`backward_elimination`)."""
+        torch = self.torch
+        a = blocks["A"] + 1e-12 * torch.diag_embed(torch.diagonal(blocks["A"], dim1=1, dim2=2))
+        h = blocks["H"] - torch.einsum("wkc,wkd->cd", blocks["E"], torch.linalg.solve(a, blocks["E"]))
+        return h.numpy() / np.outer(self.scale, self.scale)
 
 
 def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support: np.ndarray,
