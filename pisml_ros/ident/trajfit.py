@@ -131,14 +131,14 @@ class TrajectoryFitter:
 
         cost = evaluate(theta, z)
         normal = problem.normal_equations(theta, z)
-        mu, nu = 1e-3, 2.0
+        mu, nu = 1e-5, 2.0
         while nfev < max_nfev:
             step_theta, step_z, predicted = problem.damped_step(normal, mu)
             trial = evaluate(theta + step_theta, z + step_z)
             if trial < cost:
                 # Nielsen's update of the Levenberg-Marquardt damping from the gain ratio
                 gain = (cost - trial) / max(predicted, 1e-300)
-                mu *= max(1.0 / 3.0, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3)
+                mu *= max(0.1, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3)
                 nu = 2.0
                 theta, z, fall, cost = theta + step_theta, z + step_z, cost - trial, trial
                 if keep_going is not None and not keep_going(problem.coefficients(theta)):
