@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: env demo test test-fast bags bench bench-quick bench-gap clean
+.PHONY: env demo test test-fast bags bench bench-quick bench-gap bench-oracle clean
 
 env:
 	@bash scripts/bootstrap_env.sh
@@ -27,7 +27,7 @@ bags: env
 	$(VENV)/bin/pisml simulate --scenario test --seed 0 --out bags/test_clean
 	$(VENV)/bin/pisml simulate --scenario smallsignal --snr-db 40 --seed 0 --out bags/smallsignal_40dB
 
-# identification benchmark (paper protocol; ~30 min on 2 cores): bench/results.json, bench/RESULTS.md, bench/figures/
+# identification benchmark (paper protocol; ~6 min on 2 cores, at most 30): bench/results.json, bench/RESULTS.md, bench/figures/
 bench: env
 	$(PY) bench/bench.py
 
@@ -38,6 +38,11 @@ bench-quick: env
 # gap workflow benchmark (quick matrix, ~10 min on 2 cores): bench/gap_results.json, bench/GAP_RESULTS.md
 bench-gap: env
 	$(PY) bench/gap_bench.py --quick
+
+# the true structure's coefficients fitted to 40 dB protocol data, three recordings (~10 min):
+# bench/oracle_results.json, bench/ORACLE_RESULTS.md
+bench-oracle: env
+	$(PY) bench/oracle_bench.py
 
 clean:
 	rm -rf build install log out .pytest_cache
