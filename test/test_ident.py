@@ -18,6 +18,7 @@ from pisml_ros.plant.scenarios import generate, schedules_for
 
 # a small, fast PISML configuration: the pipeline end to end in seconds
 FAST = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
+        "refine_growing_evaluations": "2,2,2", "refine_polish_evaluations": "2,2",
         "distill_max_terms": 2}
 
 
@@ -332,6 +333,36 @@ def test_trajectory_fit_of_noisy_records_stays_at_the_true_coefficients():
     result = fitter.fit(truth.copy(), truth != 0, train, small, lambda_jac=1.0, max_nfev=15, fit_starts_first=True)
     assert result.hessian is not None
     np.testing.assert_allclose(result.coefficients[truth != 0], truth[truth != 0], rtol=0.03)
+
+
+@pytest.mark.slow
+def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
+    # from 20-30 % off, with a spurious product term, on noisy records: the stages of growing windows
+    # bring the true coefficients back, and the pruned, re-fitted model drops the spurious term
+    from pisml_ros.ident import IdentConfig
+    from pisml_ros.ident.estimators import refine_explicit
+    from pisml_ros.model import ExplicitModel
+
+    train, truth = _oscillator_data(6, lambda rng: [(int(rng.integers(50, 350)), rng.uniform(0.5, 1.5))], seed=1)
+    small, _ = _oscillator_data(4, lambda rng: [(50, 1.01)], seed=2)
+    start = np.vstack([truth * (1 + 0.25 * np.array([[1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])), [[30.0, -30.0]]])
+    model = ExplicitModel(("xa", "xb"), ("v",), ["xa", "xb", "v", "xa*xb"], start)
+    cfg = IdentConfig.from_mapping({"refine_growing_windows": "10,50", "refine_growing_evaluations": "10,8",
+                                    "refine_polish_windows": "100", "refine_polish_evaluations": "6",
+                                    "refine_prune_budgets": "0.01"})
+    progress = []
+    out = refine_explicit(model, train, small, cfg, progress=lambda fraction, losses: progress.append(fraction))
+    assert set(out) == {"refined", "pruned +1 %"}
+    assert out["refined"].metadata["refinement"]["growing_windows"]["windows"] == [10, 50]
+    np.testing.assert_allclose(out["refined"].coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
+    pruned = out["pruned +1 %"]
+    assert np.all(pruned.coefficients[3] == 0) and np.all(pruned.coefficients[:3][truth != 0] != 0)
+    np.testing.assert_allclose(pruned.coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
+    assert progress and progress[-1] == pytest.approx(1.0) and all(np.diff(progress) >= 0)
+    # empty growing windows: the one-stage refinement (with its pruned candidates), as on clean data
+    one_stage = refine_explicit(model, train, small, IdentConfig.from_mapping(
+        {"refine_growing_windows": "", "refine_prune_budgets": "0.01", "refine_window": 50, "refine_max_nfev": 3}))
+    assert "growing_windows" not in one_stage["refined"].metadata["refinement"]
 
 
 def test_integral_form_spline_quadrature_and_input_jumps():

@@ -12,6 +12,7 @@ from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
 
 FAST = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
+        "refine_growing_evaluations": "2,2,2", "refine_polish_evaluations": "2,2",
         "distill_max_terms": 2}
 
 
