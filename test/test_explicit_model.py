@@ -130,9 +130,7 @@ def test_shooting_normal_equations_match_autodiff(truth):
     data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.01, rng_seed=2)
     small = generate(plant, *schedules_for("smallsignal", n_traj=1, duration=0.008))
     fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
-    problem = _ShootingProblem(fitter, start, model.coefficients != 0, data, small, lambda_jac=1.0, ss_stride=5,
-                               lambda_rest=1.0)
-    assert problem.rest is not None  # the records start at rest
+    problem = _ShootingProblem(fitter, start, model.coefficients != 0, data, small, lambda_jac=1.0, ss_stride=5)
     theta = torch.tensor(start.ravel()[problem.idx] / problem.scale)
     z = 0.1 * torch.randn((problem.n_windows, 13), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 
@@ -156,8 +154,8 @@ def test_shooting_normal_equations_match_autodiff(truth):
     jc = torch.func.jacfwd(residuals, argnums=0)(theta, z)
     jz_all = torch.func.jacfwd(residuals, argnums=1)(theta, z)
     jz = torch.stack([jz_all[w, :, w, :] for w in range(n_win)])
-    js = torch.func.jacfwd(problem._static_residuals)(theta)
-    r, rs = residuals(theta, z), problem._static_residuals(theta)
+    js = torch.func.jacfwd(problem._smallsignal_residuals)(theta)
+    r, rs = residuals(theta, z), problem._smallsignal_residuals(theta)
     blocks = problem.normal_equations(theta, z)
     expected = {"H": torch.einsum("wrc,wrd->cd", jc, jc) + js.T @ js, "g": torch.einsum("wrc,wr->c", jc, r) + js.T @ rs,
                 "A": jz.transpose(1, 2) @ jz, "E": jz.transpose(1, 2) @ jc, "bz": torch.einsum("wrk,wr->wk", jz, r)}

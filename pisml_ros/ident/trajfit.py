@@ -1,7 +1,7 @@
 """Coefficient refinement on trajectories (multiple shooting) and small-signal responses.
 
 Given a fixed structure (terms and a support mask), the coefficients are fitted by
-Levenberg-Marquardt least squares over three residual kinds:
+Levenberg-Marquardt least squares over two residual kinds:
 
 - trajectory residuals: windows of ``window`` samples start at fitted start states
   (full multiple shooting) and are integrated with RK4 (``substeps`` per sample);
@@ -10,9 +10,7 @@ Levenberg-Marquardt least squares over three residual kinds:
   of each small-signal record, the model's linearisation (A = ∂f/∂x, B = ∂f/∂u)
   must reproduce the measured deviation Δx(t) over the whole record (exact
   zero-order-hold discretisation by matrix exponential). This is what pins the
-  slow droop/power modes that 40 ms trajectories cannot;
-- rest-point residuals (optional): where a record starts in steady state, the
-  model's equilibrium must lie at the measured mean.
+  slow droop/power modes that 40 ms trajectories cannot.
 
 The Gauss-Newton normal equations come from forward sensitivities integrated beside
 the states, with the window start states eliminated per window (Schur complement):
@@ -81,8 +79,7 @@ class TrajectoryFitter:
 
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
-            on_evaluation=None, keep_going=None, fit_starts_first: bool = False,
-            lambda_rest: float = 0.0) -> FitResult:
+            on_evaluation=None, keep_going=None, fit_starts_first: bool = False) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -93,10 +90,6 @@ class TrajectoryFitter:
             Records that start in steady state and then see a small input step.
         lambda_jac : float
             Weight of the small-signal residuals (0 switches them off).
-        lambda_rest : float
-            Weight of the rest-point residuals (0 switches them off): where a record (training or
-            small-signal) starts in steady state, the model's equilibrium at its inputs must lie at
-            the measured mean, to the mean's noise.
         max_nfev : int
             Cost evaluations (the start and every trial step).
         on_evaluation : callable, optional
@@ -113,7 +106,7 @@ class TrajectoryFitter:
         """
         import torch
 
-        problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride, lambda_rest)
+        problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride)
         started = time.monotonic()
         theta = torch.tensor(coef0.ravel()[problem.idx] / problem.scale)
         z = torch.zeros((problem.n_windows, self.n_states))
@@ -168,8 +161,7 @@ class _ShootingProblem:
     the full sparse Jacobian needed thousands of LSMR products per step at the benchmark's sizes.
     """
 
-    def __init__(self, fitter: TrajectoryFitter, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
-                 lambda_rest):
+    def __init__(self, fitter: TrajectoryFitter, coef0, mask, train, smallsignal, lambda_jac, ss_stride):
         import torch
 
         torch.set_default_dtype(torch.float64)
@@ -209,18 +201,6 @@ class _ShootingProblem:
                 self.ss.append((torch.tensor(grad), torch.tensor(dx), torch.tensor(du), torch.tensor(w_ss)))
         self.ss_dt = fitter.dt * ss_stride
         self.sqrt_lj = float(np.sqrt(lambda_jac))
-        # rest points: where a record starts in steady state, its mean there is an equilibrium of
-        # the plant, known to the noise / sqrt(samples)
-        rest = []
-        for tr in [*train, *(smallsignal or [])]:
-            k0 = _steady_start(tr)
-            if k0:
-                rest.append((np.concatenate([tr.x[:k0].mean(axis=0), tr.u[0]]), k0))
-        self.rest = None
-        if rest and lambda_rest > 0:
-            z_rest = np.array([r[0] for r in rest])
-            self.rest = (torch.tensor(self.terms.evaluate(z_rest)), torch.tensor(self.terms.gradient(z_rest)[..., :n]),
-                         torch.tensor(np.sqrt(lambda_rest * np.array([r[1] for r in rest]) / (fitter.window + 1))))
         self._term_gradient = torch.func.vmap(torch.func.jacfwd(self.terms.evaluate_torch))
 
     def coefficients(self, theta) -> np.ndarray:
@@ -333,37 +313,20 @@ class _ShootingProblem:
             res.append(self.sqrt_lj * ((torch.stack(preds) - dx) * w_ss).reshape(-1) / np.sqrt(dx.shape[0]))
         return torch.cat(res) if res else torch.zeros(0)
 
-    def _rest_residuals(self, theta):
-        """How far the model's equilibrium lies from each rest point, by one Newton step from the
-        measured mean (x_eq - x̄ ≈ -J(x̄)⁻¹ f(x̄)), in noise units of the mean: this pins the steady
-        state that windows of a few ms barely see drift from."""
-        torch = self.torch
-        if self.rest is None:
-            return torch.zeros(0)
-        values, gradient, weight = self.rest
-        c = self._matrix(theta)
-        f = values @ c  # (n_rest, n)
-        jac = torch.einsum("rts,tj->rjs", gradient, c)
-        step = torch.linalg.solve(jac, f[..., None])[..., 0]
-        return (step / self.x_unit * weight[:, None]).reshape(-1)
-
-    def _static_residuals(self, theta):
-        return self.torch.cat([self._smallsignal_residuals(theta), self._rest_residuals(theta)])
-
     def cost(self, theta, z) -> float:
         with self.torch.no_grad():
             traj, _ = self._shoot(theta, z)
-            static = self._static_residuals(theta)
-        value = traj + 0.5 * float((static * static).sum())
+            ss = self._smallsignal_residuals(theta)
+        value = traj + 0.5 * float((ss * ss).sum())
         return value if np.isfinite(value) else np.inf
 
     def normal_equations(self, theta, z) -> dict:
         torch = self.torch
         with torch.no_grad():
             _, blocks = self._shoot(theta, z, "zc")
-        if (self.ss or self.rest is not None) and self.idx.size:
-            r = self._static_residuals(theta).detach()
-            j = torch.nan_to_num(torch.func.jacfwd(self._static_residuals)(theta))
+        if self.ss and self.idx.size:
+            r = self._smallsignal_residuals(theta).detach()
+            j = torch.nan_to_num(torch.func.jacfwd(self._smallsignal_residuals)(theta))
             blocks["H"] += j.T @ j
             blocks["g"] += j.T @ torch.nan_to_num(r)
         return blocks
