@@ -335,6 +335,28 @@ def test_trajectory_fit_of_noisy_records_stays_at_the_true_coefficients():
     np.testing.assert_allclose(result.coefficients[truth != 0], truth[truth != 0], rtol=0.03)
 
 
+def test_training_error_runs_records_from_their_rest_means():
+    from pisml_ros.analysis.metrics import relative_error
+    from pisml_ros.data.dataset import steady_start_length
+    from pisml_ros.ident.estimators import _rest_started, training_error
+    from pisml_ros.model import ExplicitModel
+
+    train, truth = _oscillator_data(4, lambda rng: [(int(rng.integers(50, 350)), rng.uniform(0.5, 1.5))], seed=1)
+    model = ExplicitModel(("xa", "xb"), ("v",), ["xa", "xb", "v"], truth)
+    started = _rest_started(train)
+    for tr, rest in zip(train, started):
+        end = steady_start_length(tr)  # the first input step
+        assert 50 <= end < 350
+        np.testing.assert_array_equal(rest.x[1:], tr.x[1:])
+        np.testing.assert_allclose(rest.x[0], tr.x[:end].mean(axis=0), rtol=1e-12)
+    from_first = np.mean([relative_error(p.x, t.x) for p, t in zip(model.simulate(train), train)])
+    # the true model: from the rest means only the records' own noise is left
+    assert training_error(model, train) < 0.9 * from_first
+    clean, _ = _oscillator_data(2, lambda rng: [(100, 1.2)], seed=3, noise=0.0)
+    for tr, rest in zip(clean, _rest_started(clean)):
+        np.testing.assert_allclose(rest.x, tr.x, rtol=0, atol=1e-12)
+
+
 @pytest.mark.slow
 def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     # from 20-30 % off, with a spurious product term, on noisy records: the stages of growing windows
