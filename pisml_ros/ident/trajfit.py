@@ -125,7 +125,9 @@ class TrajectoryFitter:
         cost = evaluate(theta, z)
         normal = problem.normal_equations(theta, z)
         mu, nu = 1e-5, 2.0
-        while nfev < max_nfev:
+        # windows that blow up can leave the normal equations without finite values: the fit then
+        # ends where it is (a step from there is undefined), without a Hessian for pruning
+        while nfev < max_nfev and _finite(normal):
             step_theta, step_z, predicted = problem.damped_step(normal, mu)
             trial = evaluate(theta + step_theta, z + step_z)
             if trial < cost:
@@ -145,8 +147,14 @@ class TrajectoryFitter:
                 nu *= 2.0
                 if mu > 1e10:
                     break
+        hessian = problem.profiled_hessian(normal) if _finite(normal) else None
         return FitResult(problem.coefficients(theta), cost, nfev, time.monotonic() - started,
-                         hessian=problem.profiled_hessian(normal), support=problem.idx)
+                         hessian=hessian if hessian is not None and np.all(np.isfinite(hessian)) else None,
+                         support=problem.idx)
+
+
+def _finite(blocks: dict) -> bool:
+    return all(bool(value.isfinite().all()) for value in blocks.values())
 
 
 class _ShootingProblem:
@@ -241,11 +249,13 @@ class _ShootingProblem:
             cost += 0.5 * float((r * r).sum())
             if blocks is None:
                 return
-            jz = torch.nan_to_num(s_z * w[None, :, None])
+            # a window that has blown up (residuals at the clip) has no useful slope: it adds none
+            alive = ((r.abs() < 1e6).all(dim=-1) & torch.isfinite(x).all(dim=-1)).to(r.dtype)[:, None, None]
+            jz = torch.nan_to_num(s_z * w[None, :, None], nan=0.0, posinf=0.0, neginf=0.0) * alive
             blocks["A"] += jz.transpose(1, 2) @ jz
             blocks["bz"] += (jz.transpose(1, 2) @ r[..., None])[..., 0]
             if s_c is not None:
-                jc = torch.nan_to_num(s_c * w[None, :, None])
+                jc = torch.nan_to_num(s_c * w[None, :, None], nan=0.0, posinf=0.0, neginf=0.0) * alive
                 flat = jc.reshape(-1, n_c)
                 blocks["H"] += flat.T @ flat
                 blocks["g"] += flat.T @ r.reshape(-1)
