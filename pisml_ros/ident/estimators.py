@@ -555,7 +555,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     stages = list(zip(cfg.refine_growing_windows, cfg.refine_growing_evaluations))
     polish = list(zip(cfg.refine_polish_windows, cfg.refine_polish_evaluations))
     total = sum(n for _, n in stages + polish)
-    done = [0]
+    done, used = [0], [0]  # evaluations budgeted (progress) and spent
     lambda_jac = 1.0 if smallsignal is not None else 0.0
 
     def run(coef, schedule):
@@ -576,10 +576,12 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                 model.metadata.setdefault("refinement_notes", []).append(f"window {window}: {err}")
                 break
             done[0] += evaluations
+            used[0] += result.nfev
             coef = result.coefficients
         return result
 
     meta = dict(model.metadata)
+    started = time.monotonic()
     try:
         result = run(model.coefficients.copy(), stages)
     except (np.linalg.LinAlgError, FloatingPointError) as err:
@@ -588,8 +590,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     if result is None:
         return {}
     schedule = {"windows": [w for w, _ in stages], "evaluations": [n for _, n in stages]}
-    meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds, "abandoned": False,
-                          "growing_windows": schedule}
+    meta["refinement"] = {"cost": result.cost, "nfev": used[0], "seconds": time.monotonic() - started,
+                          "abandoned": False, "growing_windows": schedule}
     out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients, meta)}
     if not cfg.refine_prune_budgets or result.hessian is None:
         return out
