@@ -194,6 +194,7 @@ class _ShootingProblem:
         self.term_of = torch.tensor(self.idx // self.shape[1])
         self.row_of = torch.tensor(self.idx % self.shape[1])
         self.scale_t = torch.tensor(self.scale)
+        self.idx_t = torch.tensor(self.idx)
         # residuals are (x - x_measured) * weight / sqrt(window + 1); z is in units of 1 / weight
         self.res_weight = torch.tensor(fitter.weights) / np.sqrt(fitter.window + 1)
         self.x_unit = torch.tensor(1.0 / fitter.weights)
@@ -222,7 +223,7 @@ class _ShootingProblem:
     def _matrix(self, theta):
         torch = self.torch
         flat = torch.zeros(int(np.prod(self.shape)), dtype=theta.dtype)
-        return flat.index_put((torch.tensor(self.idx),), theta * self.scale_t).reshape(self.shape)
+        return flat.index_put((self.idx_t,), theta * self.scale_t).reshape(self.shape)
 
     def _shoot(self, theta, z, tangents: str = ""):
         """Integrate every window from its start; residuals, and the Gauss-Newton blocks when
@@ -238,6 +239,7 @@ class _ShootingProblem:
         w = self.res_weight
         cost = 0.0
         blocks = None
+        s_z = s_c = None
         if tangents:
             # d x / d z (each window's own starts) and d x / d theta, per window
             s_z = torch.diag(self.x_unit).expand(n_win, n, n).clone()
@@ -265,40 +267,33 @@ class _ShootingProblem:
                 blocks["E"] += jz.transpose(1, 2) @ jc
 
         def stage(y, u, y_z, y_c):
+            """One RK4 stage: the derivative at y, and the tangents' derivatives (None where none)."""
             signals = torch.cat([y, u], dim=-1)
             values = self.terms.evaluate_torch(signals)  # (n_win, n_terms)
-            k = values @ c
-            if blocks is None:
-                return k, None, None
+            if y_z is None:
+                return values @ c, None, None
             jx = torch.einsum("wts,tj->wjs", self._term_gradient(signals)[..., :n], c)  # (n_win, n, n)
-            k_z = jx @ y_z
             k_c = None
             if y_c is not None:
                 k_c = jx @ y_c
                 # f is linear in the coefficients: d f_j / d c_(term, j) is the term's value
                 k_c[:, self.row_of, torch.arange(n_c)] += values[:, self.term_of] * self.scale_t
-            return k, k_z, k_c
+            return values @ c, jx @ y_z, k_c
+
+        def ahead(s, ds, a):  # s + a·ds, for the states and whichever tangents are carried
+            return None if s is None else s + a * ds
 
         accumulate(x, 0)
         for k in range(self.window):
             u = u_all[:, k]
             for _ in range(self.substeps):
-                if blocks is None:
-                    with torch.no_grad():
-                        k1 = stage(x, u, None, None)[0]
-                        k2 = stage(x + 0.5 * h * k1, u, None, None)[0]
-                        k3 = stage(x + 0.5 * h * k2, u, None, None)[0]
-                        k4 = stage(x + h * k3, u, None, None)[0]
-                    x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-                    continue
                 k1, z1, c1 = stage(x, u, s_z, s_c)
-                k2, z2, c2 = stage(x + 0.5 * h * k1, u, s_z + 0.5 * h * z1,
-                                   None if s_c is None else s_c + 0.5 * h * c1)
-                k3, z3, c3 = stage(x + 0.5 * h * k2, u, s_z + 0.5 * h * z2,
-                                   None if s_c is None else s_c + 0.5 * h * c2)
-                k4, z4, c4 = stage(x + h * k3, u, s_z + h * z3, None if s_c is None else s_c + h * c3)
+                k2, z2, c2 = stage(x + 0.5 * h * k1, u, ahead(s_z, z1, 0.5 * h), ahead(s_c, c1, 0.5 * h))
+                k3, z3, c3 = stage(x + 0.5 * h * k2, u, ahead(s_z, z2, 0.5 * h), ahead(s_c, c2, 0.5 * h))
+                k4, z4, c4 = stage(x + h * k3, u, ahead(s_z, z3, h), ahead(s_c, c3, h))
                 x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-                s_z = s_z + (h / 6.0) * (z1 + 2 * z2 + 2 * z3 + z4)
+                if s_z is not None:
+                    s_z = s_z + (h / 6.0) * (z1 + 2 * z2 + 2 * z3 + z4)
                 if s_c is not None:
                     s_c = s_c + (h / 6.0) * (c1 + 2 * c2 + 2 * c3 + c4)
             accumulate(x, k + 1)
