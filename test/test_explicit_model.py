@@ -206,3 +206,37 @@ def test_a_refinement_goes_on_while_its_free_run_error_falls():
     # a diverged check (inf) stops it; one better than the start never does
     assert stops_at([2.0, float("inf")], 1.5) == 2
     assert stops_at([1.0, 1.2, 1.3], 1.5) is None
+
+
+def test_stability_prior_residuals_are_the_eigenvalues_beyond_the_margin(truth):
+    """At the small-signal operating point the prior's residuals are sqrt(w)·(Re λ + margin) of the
+    eigenvalues of the model's Jacobian there with Re λ > -margin, and its θ-derivatives match
+    central differences (first-order eigenvalue perturbation)."""
+    from pisml_ros.data.dataset import steady_start_length
+    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
+
+    model, plant = truth
+    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.0, rng_seed=2)
+    small = generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.008))
+    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
+    # the plant's slowest pair at ug 0.8 is -0.73 ± 1.7j: a margin of 1 1/s makes both count
+    problem = _ShootingProblem(fitter, start, start != 0, data, small, lambda_jac=1.0, ss_stride=5,
+                               lambda_stab=4.0, stability_margin=1.0)
+    theta = start.ravel()[problem.idx] / problem.scale
+    res, jac = problem._stability_residuals(theta)
+    tr = next(iter(small))
+    rest = tr.x[:steady_start_length(tr)].mean(axis=0)
+    eig = np.linalg.eigvals(model.jacobian(rest, tr.u[0]))
+    expected = np.sort(2.0 * (eig.real[eig.real > -1.0] + 1.0))
+    assert res.size == 2
+    np.testing.assert_allclose(np.sort(res), expected, rtol=1e-8)
+    numeric = np.zeros_like(jac)
+    for i in range(theta.size):
+        step = np.zeros_like(theta)
+        step[i] = 1e-6
+        numeric[:, i] = (problem._stability_residuals(theta + step)[0]
+                         - problem._stability_residuals(theta - step)[0]) / 2e-6
+    np.testing.assert_allclose(jac, numeric, atol=1e-5 * np.abs(jac).max())
+    # stable beyond the margin: no residuals; weight 0: the prior is off
+    assert _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, 4.0, 0.1)._stability_residuals(theta)[0].size == 0
+    assert _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, 0.0, 1.0)._stability_residuals(theta)[0].size == 0

@@ -15,6 +15,7 @@ from pisml_ros.ident.trajfit import backward_elimination
 from pisml_ros.model import ExplicitModel
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
+from pisml_ros.signals import INPUT_NAMES, STATE_NAMES
 
 # a small, fast PISML configuration: the pipeline end to end in seconds
 FAST = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
@@ -479,3 +480,28 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     # where another candidate wins, pruned models do not come back through the tolerance
     scores["backbone"] = 0.02
     assert _selected(candidates["refined"], candidates, scores, tolerance=0.5).metadata["selection"]["chosen"] == "backbone"
+
+
+def test_integrator_equations_keep_the_constant_and_plain_signals_only():
+    from pisml_ros.ident.library import integrator_row_mask
+
+    terms = ["1", "il_d", "2*vc_q", "Pf*vc_q", "vc_d*ig_d + vc_q*ig_q", "ug*cos(theta_g - delta)", "ig_d**2"]
+    mask = integrator_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles())
+    integrators = [STATE_NAMES.index(s) for s in ("phi_d", "phi_q", "gamma_d", "gamma_q")]
+    others = [j for j in range(len(STATE_NAMES)) if j not in integrators]
+    assert mask[:, others].all()
+    assert mask[:3, integrators].all() and not mask[3:, integrators].any()
+    none = integrator_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles(integrators=()))
+    assert none.all()
+
+
+def test_a_fit_is_reproducible(train, small):
+    """Same data, same seed: the same models (the network's initial weights come from the seed too)."""
+    config = IdentConfig.from_mapping({**FAST, "refine": False})
+    first = make_estimator("pisml", config).fit(train, small)
+    import torch
+
+    torch.rand(7)  # the global torch RNG moved on in between
+    second = make_estimator("pisml", config).fit(train, small)
+    np.testing.assert_array_equal(first.distilled_.coefficients, second.distilled_.coefficients)
+    np.testing.assert_array_equal(first.explicit_model_.coefficients, second.explicit_model_.coefficients)

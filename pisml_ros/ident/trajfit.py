@@ -1,7 +1,7 @@
 """Coefficient refinement on trajectories (multiple shooting) and small-signal responses.
 
 Given a fixed structure (terms and a support mask), the coefficients are fitted by
-Levenberg-Marquardt least squares over two residual kinds:
+Levenberg-Marquardt least squares over these residual kinds:
 
 - trajectory residuals: windows of ``window`` samples start at fitted start states
   (full multiple shooting) and are integrated with RK4 (``substeps`` per sample);
@@ -10,7 +10,10 @@ Levenberg-Marquardt least squares over two residual kinds:
   of each small-signal record, the model's linearisation (A = ∂f/∂x, B = ∂f/∂u)
   must reproduce the measured deviation Δx(t) over the whole record (exact
   zero-order-hold discretisation by matrix exponential). This is what pins the
-  slow droop/power modes that 40 ms trajectories cannot.
+  slow droop/power modes that 40 ms trajectories cannot;
+- optionally a stability prior: at the small-signal operating point, eigenvalues of the
+  model's Jacobian right of ``-margin`` cost ``(Re λ + margin)²`` (first-order eigenvalue
+  perturbation for their slopes).
 
 The Gauss-Newton normal equations come from forward sensitivities integrated beside
 the states, with the window start states eliminated per window (Schur complement):
@@ -79,7 +82,8 @@ class TrajectoryFitter:
 
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
-            on_evaluation=None, keep_going=None, fit_starts_first: bool = False) -> FitResult:
+            on_evaluation=None, keep_going=None, fit_starts_first: bool = False,
+            lambda_stab: float = 0.0, stability_margin: float = 0.1) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -90,6 +94,10 @@ class TrajectoryFitter:
             Records that start in steady state and then see a small input step.
         lambda_jac : float
             Weight of the small-signal residuals (0 switches them off).
+        lambda_stab : float
+            Weight of the stability prior (0 switches it off): at the pre-step steady state of each
+            small-signal record, every eigenvalue of the model's Jacobian with a real part above
+            ``-stability_margin`` (1/s) adds a residual ``sqrt(lambda_stab) * (Re λ + margin)``.
         max_nfev : int
             Cost evaluations (the start and every trial step).
         on_evaluation : callable, optional
@@ -106,7 +114,8 @@ class TrajectoryFitter:
         """
         import torch
 
-        problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride)
+        problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
+                                   lambda_stab, stability_margin)
         started = time.monotonic()
         theta = torch.tensor(coef0.ravel()[problem.idx] / problem.scale)
         z = torch.zeros((problem.n_windows, self.n_states))
@@ -172,7 +181,8 @@ class _ShootingProblem:
     the full sparse Jacobian needed thousands of LSMR products per step at the benchmark's sizes.
     """
 
-    def __init__(self, fitter: TrajectoryFitter, coef0, mask, train, smallsignal, lambda_jac, ss_stride):
+    def __init__(self, fitter: TrajectoryFitter, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
+                 lambda_stab=0.0, stability_margin=0.1):
         import torch
 
         torch.set_default_dtype(torch.float64)
@@ -212,6 +222,21 @@ class _ShootingProblem:
                 w_ss = 1.0 / np.sqrt((1.0 / fitter.weights) ** 2 + (0.01 * dx.std(axis=0)) ** 2 + 1e-30)
                 self.ss.append((torch.tensor(grad), torch.tensor(dx), torch.tensor(du), torch.tensor(w_ss)))
         self.ss_dt = fitter.dt * ss_stride
+        # stability prior: state-gradients of the terms at each small-signal operating point (the
+        # records of one point share their rest state: the mean of their steady starts)
+        self.rest_gradients = []
+        if smallsignal is not None and lambda_stab > 0:
+            rests: dict = {}
+            for tr in smallsignal:
+                k0 = _steady_start(tr)
+                if k0:
+                    rests.setdefault(tuple(np.round(tr.u[0], 9)), []).append(tr.x[:k0].mean(axis=0))
+            self.rest_gradients = [self.terms.gradient(np.concatenate([np.mean(xs, axis=0), u0]))[:, :n]
+                                   for u0, xs in rests.items()]
+        self.sqrt_ls = float(np.sqrt(lambda_stab))
+        self.stability_margin = float(stability_margin)
+        self.term_of_np = self.idx // self.shape[1]
+        self.row_of_np = self.idx % self.shape[1]
         self.sqrt_lj = float(np.sqrt(lambda_jac))
         self._term_gradient = torch.func.vmap(torch.func.jacfwd(self.terms.evaluate_torch))
 
@@ -321,11 +346,36 @@ class _ShootingProblem:
             res.append(self.sqrt_lj * ((torch.stack(preds) - dx) * w_ss).reshape(-1) / np.sqrt(dx.shape[0]))
         return torch.cat(res) if res else torch.zeros(0)
 
+    def _stability_residuals(self, theta):
+        """Stability prior: residuals ``sqrt(λ_s)·(Re λ + margin)`` of the eigenvalues of the model's
+        Jacobian at the small-signal operating points whose real part exceeds ``-margin``, and their
+        derivatives in θ (first-order eigenvalue perturbation: dλ = uᴴ dA v / uᴴv)."""
+        import scipy.linalg
+
+        c = self.coefficients(np.asarray(theta))
+        res, rows = [], []
+        for grad in self.rest_gradients:
+            a = c.T @ grad  # (n_states, n_states): row j is equation j
+            if not np.all(np.isfinite(a)):
+                continue
+            lam, left, right = scipy.linalg.eig(a, left=True, right=True)
+            for i in np.flatnonzero(lam.real > -self.stability_margin):
+                u, v = left[:, i], right[:, i]
+                d_re = np.real(np.outer(u.conj(), v) / (u.conj() @ v))  # ∂Re λ / ∂A
+                # A[j, k] = Σ_t c[t, j]·grad[t, k]: ∂A[row, k] / ∂θ = scale·grad[term, k]
+                rows.append(self.sqrt_ls * self.scale * np.einsum("ik,ik->i", d_re[self.row_of_np],
+                                                                  grad[self.term_of_np]))
+                res.append(self.sqrt_ls * (lam[i].real + self.stability_margin))
+        if not res:
+            return np.zeros(0), np.zeros((0, self.idx.size))
+        return np.array(res), np.array(rows)
+
     def cost(self, theta, z) -> float:
         with self.torch.no_grad():
             traj, _ = self._shoot(theta, z)
             ss = self._smallsignal_residuals(theta)
-        value = traj + 0.5 * float((ss * ss).sum())
+        stab, _ = self._stability_residuals(theta)
+        value = traj + 0.5 * float((ss * ss).sum()) + 0.5 * float(stab @ stab)
         return value if np.isfinite(value) else np.inf
 
     def normal_equations(self, theta, z) -> dict:
@@ -337,6 +387,10 @@ class _ShootingProblem:
             j = torch.nan_to_num(torch.func.jacfwd(self._smallsignal_residuals)(theta))
             blocks["H"] += j.T @ j
             blocks["g"] += j.T @ torch.nan_to_num(r)
+        stab, j_stab = self._stability_residuals(theta)
+        if stab.size:
+            blocks["H"] += torch.tensor(j_stab.T @ j_stab)
+            blocks["g"] += torch.tensor(j_stab.T @ stab)
         return blocks
 
     def damped_step(self, blocks, mu):
