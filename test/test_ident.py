@@ -54,6 +54,12 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"device": "gpu"})
     with pytest.raises(ConfigError, match="refine_prune_budgets must be >= 0"):
         IdentConfig.from_mapping({"refine_prune_budgets": [0.01, -1]})
+    with pytest.raises(ConfigError, match="integrator_terms must be linear or any, got 'quadratic'"):
+        IdentConfig.from_mapping({"integrator_terms": "quadratic"})
+    with pytest.raises(ConfigError, match="refine_stability_points must be records or smallsignal"):
+        IdentConfig.from_mapping({"refine_stability_points": "everywhere"})
+    with pytest.raises(ConfigError, match="refine_stability_weight must be >= 0"):
+        IdentConfig.from_mapping({"refine_stability_weight": -1})
     cfg = IdentConfig.from_mapping({"epochs": "7", "hidden": "32,16", "refine": "false",
                                     "refine_prune_budgets": "0.002,0.02"})
     assert cfg.epochs == 7 and cfg.hidden == (32, 16) and cfg.refine is False

@@ -326,6 +326,12 @@ class PISML(_Estimator):
         return self._finish(explicit, explicit)
 
 
+def _stability_anchors(train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig) -> list:
+    """The records whose rest states anchor the refinement's stability prior."""
+    records = list(smallsignal) if smallsignal is not None else []
+    return records + list(train) if cfg.refine_stability_points == "records" else records
+
+
 def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig) -> ExplicitModel:
     """``model`` with its integrator equations kept to the terms :func:`~.library.integrator_row_mask`
     admits (``cfg.integrator_terms == "linear"``), else ``model`` itself."""
@@ -525,7 +531,8 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         result = fitter.fit(model.coefficients.copy(), model.coefficients != 0, train, smallsignal,
                             lambda_jac=1.0 if smallsignal is not None else 0.0, max_nfev=cfg.refine_max_nfev,
                             on_evaluation=on_evaluation, keep_going=improving, fit_starts_first=True,
-                            lambda_stab=cfg.refine_stability_weight, stability_margin=cfg.refine_stability_margin)
+                            lambda_stab=cfg.refine_stability_weight, stability_margin=cfg.refine_stability_margin,
+                            stability_records=_stability_anchors(train, smallsignal, cfg))
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
         # a refinement that breaks down (a window blowing up) leaves the earlier candidates standing
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
@@ -589,7 +596,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
             try:
                 result = fitter.fit(coef, coef != 0, train, smallsignal, lambda_jac=lambda_jac, max_nfev=evaluations,
                                     on_evaluation=on_evaluation, fit_starts_first=True,
-                                    lambda_stab=lambda_stab, stability_margin=cfg.refine_stability_margin)
+                                    lambda_stab=lambda_stab, stability_margin=cfg.refine_stability_margin,
+                                    stability_records=_stability_anchors(train, smallsignal, cfg))
             except ValueError as err:  # no trajectory as long as the window: stop growing
                 model.metadata.setdefault("refinement_notes", []).append(f"window {window}: {err}")
                 break

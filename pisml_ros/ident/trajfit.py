@@ -83,7 +83,7 @@ class TrajectoryFitter:
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
             on_evaluation=None, keep_going=None, fit_starts_first: bool = False,
-            lambda_stab: float = 0.0, stability_margin: float = 0.1) -> FitResult:
+            lambda_stab: float = 0.0, stability_margin: float = 0.1, stability_records=None) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -98,6 +98,9 @@ class TrajectoryFitter:
             Weight of the stability prior (0 switches it off): at the pre-step steady state of each
             small-signal record, every eigenvalue of the model's Jacobian with a real part above
             ``-stability_margin`` (1/s) adds a residual ``sqrt(lambda_stab) * (Re λ + margin)``.
+        stability_records : iterable of trajectories, optional
+            The records whose rest states (steady starts, grouped by input) anchor the stability
+            prior instead of the small-signal records.
         max_nfev : int
             Cost evaluations (the start and every trial step).
         on_evaluation : callable, optional
@@ -115,7 +118,7 @@ class TrajectoryFitter:
         import torch
 
         problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
-                                   lambda_stab, stability_margin)
+                                   lambda_stab, stability_margin, stability_records)
         started = time.monotonic()
         theta = torch.tensor(coef0.ravel()[problem.idx] / problem.scale)
         z = torch.zeros((problem.n_windows, self.n_states))
@@ -182,7 +185,7 @@ class _ShootingProblem:
     """
 
     def __init__(self, fitter: TrajectoryFitter, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
-                 lambda_stab=0.0, stability_margin=0.1):
+                 lambda_stab=0.0, stability_margin=0.1, stability_records=None):
         import torch
 
         torch.set_default_dtype(torch.float64)
@@ -225,9 +228,10 @@ class _ShootingProblem:
         # stability prior: state-gradients of the terms at each small-signal operating point (the
         # records of one point share their rest state: the mean of their steady starts)
         self.rest_gradients = []
-        if smallsignal is not None and lambda_stab > 0:
+        anchors = smallsignal if stability_records is None else stability_records
+        if anchors is not None and lambda_stab > 0:
             rests: dict = {}
-            for tr in smallsignal:
+            for tr in anchors:
                 k0 = _steady_start(tr)
                 if k0:
                     rests.setdefault(tuple(np.round(tr.u[0], 9)), []).append(tr.x[:k0].mean(axis=0))
