@@ -9,7 +9,8 @@ Measures, against the clean truth:
   (ii)  Wasserstein distance between identified and true spectra at ug = 0.8 and across 0.2-1.2,
         spurious unstable modes, and an eigenvalue figure;
   (iii) hybrid vs distilled error over ug 0.2-1.2 (PISML);
-  (iv)  parameter counts; (v) error vs number of trajectories and vs SNR (full mode);
+  (iv)  parameter counts; (v) error vs number of trajectories, vs SNR and vs training
+        recording at 40 dB (full mode);
   (vi)  wall time of each method.
 Writes the results JSON, bench/RESULTS.md and figures in bench/figures/. Prints one line per fit.
 """
@@ -183,14 +184,19 @@ def write_markdown(results, path):
             comp = r["hybrid_parameters"] / max(r["n_parameters"], 1)
             lines.append(f"| {r['plant']} | {r['noise']} | {r['method']} | " + " | ".join(pairs) +
                          f" | {fmt(float(np.mean(inc)) if inc else None)} | {comp:.0f}× |")
-    for key, title in (("n_traj", "Error vs number of training trajectories"), ("snr", "Error vs SNR (dB)")):
+    for key, title in (("n_traj", "Error vs number of training trajectories"), ("snr", "Error vs SNR (dB)"),
+                       ("recording", "Error vs training recording at 40 dB (scenario and noise seed; "
+                                     "recording 0 is the main table's)")):
         rows = [r for r in results["runs"] if r.get("sweep") == key]
         if rows:
-            lines += ["", f"## {title} (standard plant, pisml)", "", f"| {key} | IOD % | OOD % | W(ug 0.8) | time s |",
-                      "|---|---|---|---|---|"]
+            lines += ["", f"## {title} (standard plant, pisml)", "",
+                      f"| {key} | IOD % | OOD % | W(ug 0.8) | spurious unstable | parameters | time s |",
+                      "|---|---|---|---|---|---|---|"]
             for r in rows:
+                spurious = ", ".join(map(str, r.get("spurious_unstable", []))) or ("error" if "error" in r else "none")
                 lines.append(f"| {r[key]} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
-                             f"{fmt(r.get('wasserstein_ug08'))} | {fmt(r.get('seconds'))} |")
+                             f"{fmt(r.get('wasserstein_ug08'))} | {spurious} | {r.get('n_parameters', '—')} | "
+                             f"{fmt(r.get('seconds'))} |")
     lines += ["", "Figures: bench/figures/spectra_*.png (eigenvalues at ug 0.8, model vs truth).", ""]
     path.write_text("\n".join(lines))
 
@@ -235,7 +241,8 @@ def main(argv=None) -> int:
     if not args.quick and "pisml" in methods:
         # (sweep key, value, dataset arguments): error vs number of trajectories, then vs SNR
         for key, value, kwargs in [("n_traj", 6, {"snr": 40.0, "n_traj": 6}),
-                                   ("snr", 20.0, {"snr": 20.0}), ("snr", 60.0, {"snr": 60.0})]:
+                                   ("snr", 20.0, {"snr": 20.0}), ("snr", 60.0, {"snr": 60.0}),
+                                   ("recording", 1, {"snr": 40.0, "seed": 1}), ("recording", 2, {"snr": 40.0, "seed": 2})]:
             plant, train, small, test = datasets({}, **kwargs)
             truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
             row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant, UG_GRID), truth, config,
