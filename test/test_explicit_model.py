@@ -240,3 +240,18 @@ def test_stability_prior_residuals_are_the_eigenvalues_beyond_the_margin(truth):
     # stable beyond the margin: no residuals; weight 0: the prior is off
     assert _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, 4.0, 0.1)._stability_residuals(theta)[0].size == 0
     assert _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, 0.0, 1.0)._stability_residuals(theta)[0].size == 0
+
+
+def test_term_gradients_by_the_product_rule_match_autodiff():
+    import torch
+
+    from pisml_ros.model.expressions import TermSet
+
+    signals = STATE_NAMES + INPUT_NAMES
+    z = torch.tensor(np.random.default_rng(3).normal(size=(6, len(signals))))
+    for terms in (["1", "il_d", "Pf*vc_q", "ig_d**2", "ug*cos(theta_g - delta)", "sin(delta)**2*il_q"],
+                  ["vc_d*ig_d + vc_q*ig_q", "tanh(il_d)", "ug*sin(theta_g - delta)"]):  # no product plan
+        ts = TermSet(terms, signals)
+        expected = torch.func.vmap(torch.func.jacfwd(ts.evaluate_torch))(z)
+        np.testing.assert_allclose(ts.gradient_torch(z).numpy(), expected.numpy(), atol=1e-12)
+        np.testing.assert_allclose(ts.gradient_torch(z[0]).numpy(), ts.gradient(z[0].numpy()), atol=1e-12)

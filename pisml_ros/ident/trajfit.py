@@ -242,7 +242,6 @@ class _ShootingProblem:
         self.term_of_np = self.idx // self.shape[1]
         self.row_of_np = self.idx % self.shape[1]
         self.sqrt_lj = float(np.sqrt(lambda_jac))
-        self._term_gradient = torch.func.vmap(torch.func.jacfwd(self.terms.evaluate_torch))
 
     def coefficients(self, theta) -> np.ndarray:
         out = np.zeros(int(np.prod(self.shape)))
@@ -301,7 +300,7 @@ class _ShootingProblem:
             values = self.terms.evaluate_torch(signals)  # (n_win, n_terms)
             if y_z is None:
                 return values @ c, None, None
-            jx = torch.einsum("wts,tj->wjs", self._term_gradient(signals)[..., :n], c)  # (n_win, n, n)
+            jx = torch.einsum("wts,tj->wjs", self.terms.gradient_torch(signals)[..., :n], c)  # (n_win, n, n)
             k_c = None
             if y_c is not None:
                 k_c = jx @ y_c

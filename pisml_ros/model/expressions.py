@@ -106,6 +106,7 @@ class TermSet:
         self._numpy = None
         self._torch = None
         self._plan = None
+        self._grad_plan = None
         self._grad = None
 
     def __len__(self):
@@ -185,6 +186,58 @@ class TermSet:
         return torch.stack([c if torch.is_tensor(c) else torch.full(z.shape[:-1], float(c), dtype=z.dtype,
                                                                      device=z.device)
                             for c in cols], dim=-1)
+
+    def gradient_torch(self, z):
+        """d term / d signal of a torch tensor (..., n_signals) -> (..., n_terms, n_signals).
+
+        Products of factors by the product rule (7x faster than ``vmap(jacfwd(evaluate_torch))``
+        on the refinement's batches, measured: 0.9 vs 6.9 ms for 480 rows of 31 terms); other
+        terms by forward-mode autodiff.
+        """
+        import torch
+
+        if self._plan is None:
+            self.evaluate_torch(z[..., :1, :] if z.dim() > 1 else z)  # builds the product plan
+        if self._plan is False:
+            jac = torch.func.jacfwd(self.evaluate_torch)
+            return torch.func.vmap(jac)(z.reshape(-1, z.shape[-1])).reshape(z.shape[:-1] + (len(self), z.shape[-1]))
+        if self._grad_plan is None:
+            factors, index = self._product_plan()
+            # the factors' derivatives: constants (plain signals: 0 or 1) go in a fixed table, the rest
+            # (cos(theta_g - delta) and the like) are evaluated per call
+            table = np.zeros((len(factors) + 1, len(self.signals)))
+            varying = []
+            for f, factor in enumerate(factors):
+                for k, sym in enumerate(self._symbols):
+                    d = sympy.diff(factor, sym)
+                    if d.is_number:
+                        table[f + 1, k] = float(d)
+                    else:
+                        varying.append((f + 1, k, d))
+            fn = sympy.lambdify(self._symbols, [d for _, _, d in varying], modules=[_torch_module(), "math"],
+                                cse=True) if varying else None
+            self._grad_plan = (torch.as_tensor(table), [(f, k) for f, k, _ in varying], fn)
+        table, where, fn = self._grad_plan
+        _, index = self._plan
+        if table.device != z.device:
+            table = table.to(z.device)
+            self._grad_plan = (table, where, fn)
+        ones = torch.ones(z.shape[:-1] + (1,), dtype=z.dtype, device=z.device)
+        values = self._plan[0](*z.unbind(-1)) if self._plan[0] is not None else []
+        base = torch.cat([ones] + [(v if torch.is_tensor(v) else torch.full(z.shape[:-1], float(v), dtype=z.dtype,
+                                                                             device=z.device)).unsqueeze(-1)
+                                   for v in values], dim=-1)
+        d_factor = table.to(z.dtype).expand(z.shape[:-1] + table.shape)
+        if where:
+            d_factor = d_factor.clone()
+            for (f, k), d in zip(where, fn(*z.unbind(-1))):
+                d_factor[..., f, k] = d
+        gathered = base[..., index]  # (..., n_terms, degree)
+        out = torch.zeros(z.shape[:-1] + (len(self), z.shape[-1]), dtype=z.dtype, device=z.device)
+        for m in range(index.shape[1]):
+            others = torch.cat([gathered[..., :m], gathered[..., m + 1:]], dim=-1).prod(dim=-1)
+            out = out + others.unsqueeze(-1) * d_factor[..., index[:, m], :]
+        return out
 
     def gradient(self, z: np.ndarray) -> np.ndarray:
         """d term / d signal at rows ``z``: (..., n_terms, n_signals), from sympy derivatives."""
