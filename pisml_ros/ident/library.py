@@ -15,6 +15,7 @@ from __future__ import annotations
 import itertools
 from typing import Sequence
 
+import numpy as np
 import sympy
 
 from ..model.expressions import parse_term
@@ -62,8 +63,6 @@ def integrator_row_mask(terms: Sequence[str], state_names: Sequence[str], signal
     ndarray of bool, shape (n_terms, n_states)
         False where an integrator's row meets any other term.
     """
-    import numpy as np
-
     mask = np.ones((len(terms), len(state_names)), dtype=bool)
     rows = [list(state_names).index(s) for s in roles.integrators if s in state_names]
     for k, term in enumerate(terms):
