@@ -81,6 +81,8 @@ class IdentConfig:
     # abandoned there. From a start this far, windows of 20-50 samples straight away diverge or stall
     refine_growing_windows: tuple = (10, 25, 50)
     refine_growing_evaluations: tuple = (15, 10, 10)
+    # RK4 steps per sample in the growing-window stages (the polish keeps 2)
+    refine_growing_substeps: int = 2
     refine_polish_windows: tuple = (50, 100)
     refine_polish_evaluations: tuple = (8, 6)
     # the controller integrators' equations in the refinement: "linear" keeps them to the constant
@@ -164,7 +166,7 @@ class IdentConfig:
 
     def check(self) -> None:
         positive = ["backbone_span", "epochs", "window", "batch_windows", "substeps", "distill_samples", "distill_max_terms",
-                    "refine_window", "refine_max_windows", "learning_rate", "refit_span"]
+                    "refine_window", "refine_max_windows", "learning_rate", "refit_span", "refine_growing_substeps"]
         for key in positive:
             if getattr(self, key) <= 0:
                 raise ConfigError(f"identification config: {key} must be > 0, got {getattr(self, key)}")

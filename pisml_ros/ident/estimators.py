@@ -503,9 +503,9 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     spread = np.concatenate([tr.x for tr in train]).std(axis=0)
     weights = 1.0 / np.maximum(noise, 1e-4 * spread + 1e-12)
 
-    def make_fitter(window, max_windows):
+    def make_fitter(window, max_windows, substeps=2):
         return TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=window,
-                                substeps=2, weights=weights, max_windows=max_windows)
+                                substeps=substeps, weights=weights, max_windows=max_windows)
 
     errors = {} if errors is None else errors
     if cfg.refine_growing_windows and _noisy(train):
@@ -583,10 +583,10 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     done, used = [0], [0]  # evaluations budgeted (progress) and spent
     lambda_jac = 1.0 if smallsignal is not None else 0.0
 
-    def run(coef, schedule, lambda_stab=0.0):
+    def run(coef, schedule, lambda_stab=0.0, substeps=2):
         result = None
         for window, evaluations in schedule:
-            fitter = make_fitter(window, None)
+            fitter = make_fitter(window, None, substeps)
             offset = done[0]
 
             def on_evaluation(nfev, cost):
@@ -610,7 +610,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     meta = dict(model.metadata)
     started = time.monotonic()
     try:
-        result = run(model.coefficients.copy(), stages)
+        result = run(model.coefficients.copy(), stages, substeps=cfg.refine_growing_substeps)
     except (np.linalg.LinAlgError, FloatingPointError) as err:
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
         return {}

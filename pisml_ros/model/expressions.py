@@ -168,18 +168,7 @@ class TermSet:
                     if factors else None
                 self._plan = (fn, torch.as_tensor(index))
         if self._plan is not False:
-            fn, index = self._plan
-            if index.device != z.device:  # training on an accelerator
-                index = index.to(z.device)
-                self._plan = (fn, index)
-            ones = torch.ones(z.shape[:-1] + (1,), dtype=z.dtype, device=z.device)
-            cols = [ones]
-            if fn is not None:
-                values = fn(*z.unbind(-1))
-                cols += [v if torch.is_tensor(v) else torch.full(z.shape[:-1], float(v), dtype=z.dtype, device=z.device)
-                         for v in values]
-            base = torch.cat([ones] + [c.unsqueeze(-1) for c in cols[1:]], dim=-1) if len(cols) > 1 else ones
-            return base[..., index].prod(dim=-1)
+            return self._factor_base(z)[..., self._plan[1]].prod(dim=-1)
         if self._torch is None:
             self._torch = sympy.lambdify(self._symbols, self.exprs, modules=[_torch_module(), "math"], cse=True)
         cols = self._torch(*z.unbind(-1))
@@ -187,7 +176,29 @@ class TermSet:
                                                                      device=z.device)
                             for c in cols], dim=-1)
 
-    def gradient_torch(self, z):
+    def _factor_base(self, z):
+        """``[1, factor values...]`` of the product plan at ``z``: (..., 1 + n_factors)."""
+        import torch
+
+        fn, index = self._plan
+        if index.device != z.device:  # training on an accelerator
+            self._plan = (fn, index.to(z.device))
+        cols = [torch.ones(z.shape[:-1], dtype=z.dtype, device=z.device)]
+        if fn is not None:
+            cols += [v if torch.is_tensor(v) else torch.full(z.shape[:-1], float(v), dtype=z.dtype, device=z.device)
+                     for v in fn(*z.unbind(-1))]
+        return torch.stack(cols, dim=-1)
+
+    def values_and_gradient_torch(self, z):
+        """:meth:`evaluate_torch` and :meth:`gradient_torch` at ``z`` in one pass (the factors once)."""
+        if self._plan is None:
+            self.evaluate_torch(z)  # builds the product plan
+        if self._plan is False:
+            return self.evaluate_torch(z), self.gradient_torch(z)
+        base = self._factor_base(z)
+        return base[..., self._plan[1]].prod(dim=-1), self.gradient_torch(z, base)
+
+    def gradient_torch(self, z, base=None):
         """d term / d signal of a torch tensor (..., n_signals) -> (..., n_terms, n_signals).
 
         Products of factors by the product rule (7x faster than ``vmap(jacfwd(evaluate_torch))``
@@ -218,15 +229,11 @@ class TermSet:
                                 cse=True) if varying else None
             self._grad_plan = (torch.as_tensor(table), [(f, k) for f, k, _ in varying], fn)
         table, where, fn = self._grad_plan
-        _, index = self._plan
         if table.device != z.device:
             table = table.to(z.device)
             self._grad_plan = (table, where, fn)
-        ones = torch.ones(z.shape[:-1] + (1,), dtype=z.dtype, device=z.device)
-        values = self._plan[0](*z.unbind(-1)) if self._plan[0] is not None else []
-        base = torch.cat([ones] + [(v if torch.is_tensor(v) else torch.full(z.shape[:-1], float(v), dtype=z.dtype,
-                                                                             device=z.device)).unsqueeze(-1)
-                                   for v in values], dim=-1)
+        base = self._factor_base(z) if base is None else base
+        index = self._plan[1]
         d_factor = table.to(z.dtype).expand(z.shape[:-1] + table.shape)
         if where:
             d_factor = d_factor.clone()
