@@ -81,7 +81,9 @@ class IdentConfig:
     # abandoned there. From a start this far, windows of 20-50 samples straight away diverge or stall
     refine_growing_windows: tuple = (10, 25, 50)
     refine_growing_evaluations: tuple = (15, 10, 10)
-    # RK4 steps per sample in the growing-window stages (the polish keeps 2)
+    # RK4 steps per sample in the growing-window stages (the polish keeps 2). Measured at 1 (40 dB,
+    # recordings 0 / 1 / 2): 53 / 48 / 48 s instead of ~70 s, but recording 0's pruned model was
+    # lost and an unstable refined one chosen (1.02 / 1.62 %), 1 and 2 0.24 / 1.17 %, 0.37 / 2.04 %
     refine_growing_substeps: int = 2
     refine_polish_windows: tuple = (50, 100)
     refine_polish_evaluations: tuple = (8, 6)
