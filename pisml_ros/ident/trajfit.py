@@ -11,9 +11,9 @@ Levenberg-Marquardt least squares over these residual kinds:
   must reproduce the measured deviation Δx(t) over the whole record (exact
   zero-order-hold discretisation by matrix exponential). This is what pins the
   slow droop/power modes that 40 ms trajectories cannot;
-- optionally a stability prior: at the small-signal operating point, eigenvalues of the
-  model's Jacobian right of ``-margin`` cost ``(Re λ + margin)²`` (first-order eigenvalue
-  perturbation for their slopes).
+- optionally a stability prior: at the rest states of the small-signal records (or of any
+  records given), eigenvalues of the model's Jacobian right of ``-margin`` cost
+  ``(Re λ + margin)²`` (first-order eigenvalue perturbation for their slopes).
 
 The Gauss-Newton normal equations come from forward sensitivities integrated beside
 the states, with the window start states eliminated per window (Schur complement):
@@ -226,7 +226,7 @@ class _ShootingProblem:
                 w_ss = 1.0 / np.sqrt((1.0 / fitter.weights) ** 2 + (0.01 * dx.std(axis=0)) ** 2 + 1e-30)
                 self.ss.append((torch.tensor(grad), torch.tensor(dx), torch.tensor(du), torch.tensor(w_ss)))
         self.ss_dt = fitter.dt * ss_stride
-        # stability prior: state-gradients of the terms at each small-signal operating point (the
+        # stability prior: state-gradients of the terms at each anchoring operating point (the
         # records of one point share their rest state: the mean of their steady starts)
         self.rest_gradients = []
         anchors = smallsignal if stability_records is None else stability_records
@@ -240,8 +240,6 @@ class _ShootingProblem:
                                    for u0, xs in rests.items()]
         self.sqrt_ls = float(np.sqrt(lambda_stab))
         self.stability_margin = float(stability_margin)
-        self.term_of_np = self.idx // self.shape[1]
-        self.row_of_np = self.idx % self.shape[1]
         self.sqrt_lj = float(np.sqrt(lambda_jac))
 
     def coefficients(self, theta) -> np.ndarray:
@@ -356,7 +354,7 @@ class _ShootingProblem:
 
     def _stability_residuals(self, theta):
         """Stability prior: residuals ``sqrt(λ_s)·(Re λ + margin)`` of the eigenvalues of the model's
-        Jacobian at the small-signal operating points whose real part exceeds ``-margin``, and their
+        Jacobian at the anchoring records' rest states whose real part exceeds ``-margin``, and their
         derivatives in θ (first-order eigenvalue perturbation: dλ = uᴴ dA v / uᴴv)."""
         import scipy.linalg
 
@@ -371,8 +369,8 @@ class _ShootingProblem:
                 u, v = left[:, i], right[:, i]
                 d_re = np.real(np.outer(u.conj(), v) / (u.conj() @ v))  # ∂Re λ / ∂A
                 # A[j, k] = Σ_t c[t, j]·grad[t, k]: ∂A[row, k] / ∂θ = scale·grad[term, k]
-                rows.append(self.sqrt_ls * self.scale * np.einsum("ik,ik->i", d_re[self.row_of_np],
-                                                                  grad[self.term_of_np]))
+                rows.append(self.sqrt_ls * self.scale * np.einsum("ik,ik->i", d_re[self.row_of.numpy()],
+                                                                  grad[self.term_of.numpy()]))
                 res.append(self.sqrt_ls * (lam[i].real + self.stability_margin))
         if not res:
             return np.zeros(0), np.zeros((0, self.idx.size))
@@ -399,7 +397,7 @@ class _ShootingProblem:
             big = torch.zeros((n_rec, n_c, 2 * size, 2 * size), dtype=c.dtype)
             big[:, :, :size, :size] = m[:, None]
             big[:, :, size:, size:] = m[:, None]
-            big[:, torch.arange(n_c), self.row_of, size:] = grad[:, self.term_of] * self.scale_t[None, :, None]
+            big[:, self.support_cols, self.row_of, size:] = grad[:, self.term_of] * self.scale_t[None, :, None]
             blocks = torch.linalg.matrix_exp(big * self.ss_dt)
             ad, bd = blocks[:, 0, :n, :n], blocks[:, 0, :n, n:size]
             d_ad, d_bd = blocks[:, :, :n, size:size + n], blocks[:, :, :n, size + n:]
