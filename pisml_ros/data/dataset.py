@@ -144,6 +144,17 @@ def steady_start_length(traj: Trajectory) -> int:
     return int(changes[0]) + 1 if changes.size else len(traj)
 
 
+def steady_start_mean(traj: Trajectory, min_samples: int = 5):
+    """Length and mean state of a trajectory's steady start (see :func:`steady_start_length`), or
+    ``(0, None)`` when it has none: fewer than ``min_samples`` samples, or no input change after it.
+    Where a record started at rest, this mean is its measured rest state (the noise averaged out).
+    """
+    end = steady_start_length(traj)
+    if min_samples <= end < len(traj):
+        return end, traj.x[:end].mean(axis=0)
+    return 0, None
+
+
 def check_sampling(traj: Trajectory, dt: float, source: str, rtol: float = 0.01) -> None:
     """Reject non-increasing or irregular sample times; the message names source and sample."""
     if len(traj) < 2:

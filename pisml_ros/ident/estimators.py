@@ -20,7 +20,7 @@ import numpy as np
 
 from ..analysis.operating_point import stability_at_points
 from ..data import Dataset
-from ..data.dataset import steady_start_length
+from ..data.dataset import steady_start_mean
 from ..model import ExplicitModel
 from ..model.expressions import term_set
 from .backbone import fit_backbone, reference_points
@@ -462,10 +462,10 @@ def _rest_started(train: Dataset, min_samples: int = 5) -> Dataset:
 
     trajectories = []
     for tr in train:
-        end = steady_start_length(tr)
-        if min_samples <= end < len(tr):
+        _, rest = steady_start_mean(tr, min_samples)
+        if rest is not None:
             x = tr.x.copy()
-            x[0] = tr.x[:end].mean(axis=0)
+            x[0] = rest
             tr = Trajectory(tr.traj_id, tr.t, x, tr.u)
         trajectories.append(tr)
     return Dataset(train.state_names, train.input_names, trajectories, train.metadata)

@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from ..data import Dataset
-from ..data.dataset import steady_start_length
+from ..data.dataset import steady_start_mean
 from ..equilibrium import find_equilibrium
 from ..model.replay import replay
 from ..model.expressions import term_set
@@ -125,10 +125,9 @@ def smallsignal_pairs(smallsignal: Dataset | None, span: int = 10):
     if smallsignal is None:
         return pairs
     for tr in smallsignal:
-        k0 = steady_start_length(tr)
-        if k0 < 5 or k0 >= len(tr) - span:
+        k0, x_eq = steady_start_mean(tr)
+        if x_eq is None or k0 >= len(tr) - span:
             continue
-        x_eq = tr.x[:k0].mean(axis=0)
         u_eq = tr.u[0].copy()
         dx, du = tr.x - x_eq, tr.u - u_eq
         steps = np.diff(tr.t)[:, None]

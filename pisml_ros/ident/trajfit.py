@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from ..data import Dataset
-from ..data.dataset import steady_start_length
+from ..data.dataset import steady_start_mean
 from ..model.expressions import TermSet
 from .derivatives import trajectory_windows
 
@@ -45,11 +45,6 @@ class FitResult:
     # coefficient matrix), the window start states profiled out; for pruning (:func:`backward_elimination`)
     hessian: np.ndarray | None = None
     support: np.ndarray | None = None
-
-
-def _steady_start(tr, min_samples=5):
-    end = steady_start_length(tr)
-    return end if min_samples <= end < len(tr) else 0
 
 
 class TrajectoryFitter:
@@ -215,10 +210,9 @@ class _ShootingProblem:
         self.ss = []
         if smallsignal is not None and lambda_jac > 0:
             for tr in smallsignal:
-                k0 = _steady_start(tr)
-                if k0 == 0:
+                k0, x_eq = steady_start_mean(tr)
+                if x_eq is None:
                     continue
-                x_eq = tr.x[:k0].mean(axis=0)
                 dx = tr.x[k0 - 1::ss_stride] - x_eq
                 du = tr.u[k0 - 1::ss_stride] - tr.u[0]
                 grad = self.terms.gradient(np.concatenate([x_eq, tr.u[0]]))  # (n_terms, n_signals)
@@ -233,9 +227,9 @@ class _ShootingProblem:
         if anchors is not None and lambda_stab > 0:
             rests: dict = {}
             for tr in anchors:
-                k0 = _steady_start(tr)
-                if k0:
-                    rests.setdefault(tuple(np.round(tr.u[0], 9)), []).append(tr.x[:k0].mean(axis=0))
+                _, rest = steady_start_mean(tr)
+                if rest is not None:
+                    rests.setdefault(tuple(np.round(tr.u[0], 9)), []).append(rest)
             self.rest_gradients = [self.terms.gradient(np.concatenate([np.mean(xs, axis=0), u0]))[:, :n]
                                    for u0, xs in rests.items()]
         self.sqrt_ls = float(np.sqrt(lambda_stab))

@@ -107,6 +107,7 @@ class TermSet:
         self._torch = None
         self._plan = None
         self._grad_plan = None
+        self._factors = None
         self._grad = None
 
     def __len__(self):
@@ -158,7 +159,21 @@ class TermSet:
         """
         import torch
 
+        if self._torch_plan():
+            return self._factor_base(z)[..., self._plan[1]].prod(dim=-1)
+        if self._torch is None:
+            self._torch = sympy.lambdify(self._symbols, self.exprs, modules=[_torch_module(), "math"], cse=True)
+        cols = self._torch(*z.unbind(-1))
+        return torch.stack([c if torch.is_tensor(c) else torch.full(z.shape[:-1], float(c), dtype=z.dtype,
+                                                                     device=z.device)
+                            for c in cols], dim=-1)
+
+    def _torch_plan(self) -> bool:
+        """Compile the product plan for torch once (factor functions, index); False when the terms
+        are not all products of factors."""
         if self._plan is None:
+            import torch
+
             plan = self._product_plan()
             if plan is None:
                 self._plan = False
@@ -167,14 +182,8 @@ class TermSet:
                 fn = sympy.lambdify(self._symbols, factors, modules=[_torch_module(), "math"], cse=True) \
                     if factors else None
                 self._plan = (fn, torch.as_tensor(index))
-        if self._plan is not False:
-            return self._factor_base(z)[..., self._plan[1]].prod(dim=-1)
-        if self._torch is None:
-            self._torch = sympy.lambdify(self._symbols, self.exprs, modules=[_torch_module(), "math"], cse=True)
-        cols = self._torch(*z.unbind(-1))
-        return torch.stack([c if torch.is_tensor(c) else torch.full(z.shape[:-1], float(c), dtype=z.dtype,
-                                                                     device=z.device)
-                            for c in cols], dim=-1)
+                self._factors = factors  # their derivatives: :meth:`gradient_torch`
+        return self._plan is not False
 
     def _factor_base(self, z):
         """``[1, factor values...]`` of the product plan at ``z``: (..., 1 + n_factors)."""
@@ -191,9 +200,7 @@ class TermSet:
 
     def values_and_gradient_torch(self, z):
         """:meth:`evaluate_torch` and :meth:`gradient_torch` at ``z`` in one pass (the factors once)."""
-        if self._plan is None:
-            self.evaluate_torch(z)  # builds the product plan
-        if self._plan is False:
+        if not self._torch_plan():
             return self.evaluate_torch(z), self.gradient_torch(z)
         base = self._factor_base(z)
         return base[..., self._plan[1]].prod(dim=-1), self.gradient_torch(z, base)
@@ -207,13 +214,11 @@ class TermSet:
         """
         import torch
 
-        if self._plan is None:
-            self.evaluate_torch(z[..., :1, :] if z.dim() > 1 else z)  # builds the product plan
-        if self._plan is False:
+        if not self._torch_plan():
             jac = torch.func.jacfwd(self.evaluate_torch)
             return torch.func.vmap(jac)(z.reshape(-1, z.shape[-1])).reshape(z.shape[:-1] + (len(self), z.shape[-1]))
         if self._grad_plan is None:
-            factors, index = self._product_plan()
+            factors = self._factors
             # the factors' derivatives: constants (plain signals: 0 or 1) go in a fixed table, the rest
             # (cos(theta_g - delta) and the like) are evaluated per call
             table = np.zeros((len(factors) + 1, len(self.signals)))
