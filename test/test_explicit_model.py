@@ -242,6 +242,39 @@ def test_stability_prior_residuals_are_the_eigenvalues_beyond_the_margin(truth):
     assert _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, 0.0, 1.0)._stability_residuals(theta)[0].size == 0
 
 
+def test_equilibrium_prior_residuals_are_the_field_at_the_rest_states(truth):
+    """The equilibrium prior's residuals are sqrt(w)·f(x_rest, u)/σ per equation at each anchoring rest
+    state (σ: the noise left in the rest mean, through the start model's Jacobian), linear in θ with
+    the derivatives it reports; at the true model they are small, off it they are not."""
+    from pisml_ros.data.dataset import steady_start_mean
+    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
+
+    model, plant = truth
+    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.0, rng_seed=2)
+    small = generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.008))
+    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
+    problem = _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, lambda_eq=4.0)
+    theta = start.ravel()[problem.idx] / problem.scale
+    res, jac = problem._equilibrium_residuals(theta)
+    # both small-signal records sit at ug 0.8 before their steps: one rest state
+    assert res.shape == (13,) and jac.shape == (13, theta.size)
+    tr0 = next(iter(small))
+    rests = [steady_start_mean(tr) for tr in small]
+    rest = np.mean([r for _, r in rests], axis=0)
+    samples = sum(n for n, _ in rests)
+    sigma = np.sqrt(model.jacobian(rest, tr0.u[0]) ** 2 @ (1 / weights) ** 2 / samples)
+    np.testing.assert_allclose(res, 2.0 * model.vector_field(rest[None], tr0.u[:1])[0] / sigma, rtol=1e-8, atol=1e-8)
+    assert np.abs(res).max() < 1.0  # the plant sat at its equilibrium: f there is ~0
+    step = np.zeros_like(theta)
+    step[:5] = 1e-3
+    np.testing.assert_allclose(problem._equilibrium_residuals(theta + step)[0], res + jac @ step, rtol=1e-9, atol=1e-9)
+    off = theta.copy()
+    off[0] *= 1.01
+    assert np.abs(problem._equilibrium_residuals(off)[0]).max() > 10.0
+    # weight 0: the prior is off
+    assert _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5)._equilibrium_residuals(theta)[0].size == 0
+
+
 def test_term_gradients_by_the_product_rule_match_autodiff():
     import torch
 

@@ -205,6 +205,11 @@ def test_pisml_pipeline_stages_and_model(train, small, test_set):
     assert progress == sorted(progress) and progress[-1] == 1.0
     model = est.explicit_model_
     assert isinstance(model, ExplicitModel) and model.metadata["stage"] == "explicit"
+    # candidates are scored on the small-signal records too, and every one's consistency with the
+    # records' rest points is on record
+    selection = model.metadata["selection"]
+    assert selection["scored_on"] == "training and small-signal records"
+    assert set(selection["inconsistent_rest_points"]) <= set(est.candidates_)
     # hybrid training moves Ξ on the backbone's support and never re-opens the zeros STLSQ left
     trained = est.candidates_["trained backbone"].coefficients
     assert np.array_equal(trained != 0, est.backbone_.coefficients != 0)
@@ -473,16 +478,39 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     two["re-fit +300 %"] = ExplicitModel(("x",), ("u",), ["1", "u"], np.array([[1.0], [-0.5]]), {})
     scores2["re-fit +300 %"] = 0.001
     assert _selected(template, two, scores2, tolerance=0.5).metadata["selection"]["chosen"] == "pruned +1 %"
-    # the refinement starts from the best merged or re-fitted model with those equilibria
-    from pisml_ros.ident.estimators import _refinement_start
+    # ... nor one whose equilibrium there has a mode growing faster than the selection's rate (dx/dt
+    # = 5x - 5 + 0.01 u: +5 1/s), when another candidate is consistent with the record at rest
+    fast = dict(two, **{"backbone": ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[-5.0], [5.0], [0.01]]), {})})
+    fast_scores = dict(scores2, backbone=0.001)
+    assert _selected(template, fast, fast_scores, tolerance=0.5).metadata["selection"]["chosen"] == "backbone"
+    chosen = _selected(template, fast, fast_scores, tolerance=0.5, unstable_rate=1.0)
+    assert chosen.metadata["selection"]["chosen"] == "pruned +1 %"
+    assert chosen.metadata["selection"]["inconsistent_rest_points"]["backbone"] == 1
+    # the refinement starts from the best merged or re-fitted model with those equilibria, and from
+    # the noise-compensated backbone where it has them
+    from pisml_ros.ident.estimators import _refinement_starts
 
     points = template.metadata["reference_points"]
     starts = {"backbone": two["refined"], "distilled": two["pruned +1 %"], "re-fit +300 %": two["re-fit +300 %"],
               "re-fit +100 %": two["pruned +0.3 %"]}
     start_scores = {"backbone": 0.0001, "distilled": 0.5, "re-fit +300 %": 0.001, "re-fit +100 %": 0.2}
-    assert _refinement_start(starts, start_scores, points) == "re-fit +100 %"
+    assert _refinement_starts(starts, start_scores, points) == ["re-fit +100 %"]
     start_scores["re-fit +100 %"] = float("inf")
-    assert _refinement_start(starts, start_scores, points) == "distilled"
+    assert _refinement_starts(starts, start_scores, points) == ["distilled"]
+    starts["noise-compensated backbone"], start_scores["noise-compensated backbone"] = two["refined"], 0.3
+    assert _refinement_starts(starts, start_scores, points) == ["distilled", "noise-compensated backbone"]
+    starts["noise-compensated backbone"] = two["re-fit +300 %"]  # no equilibrium: not a start
+    assert _refinement_starts(starts, start_scores, points) == ["distilled"]
+    # each start's refinement is a family of its own: the pruned models compete with their own refined model
+    family = {"refined": model(6), "pruned +0.3 %": model(3), "refined from noise-compensated backbone": model(6),
+              "pruned +0.3 % from noise-compensated backbone": model(2)}
+    family_scores = {"refined": 0.05, "pruned +0.3 %": 0.06, "refined from noise-compensated backbone": 0.03,
+                     "pruned +0.3 % from noise-compensated backbone": 0.2}
+    assert _selected(candidates["refined"], family, family_scores, tolerance=0.5).metadata["selection"]["chosen"] \
+        == "refined from noise-compensated backbone"
+    family_scores["pruned +0.3 % from noise-compensated backbone"] = 0.04
+    assert _selected(candidates["refined"], family, family_scores, tolerance=0.5).metadata["selection"]["chosen"] \
+        == "pruned +0.3 % from noise-compensated backbone"
     # where another candidate wins, pruned models do not come back through the tolerance
     scores["backbone"] = 0.02
     assert _selected(candidates["refined"], candidates, scores, tolerance=0.5).metadata["selection"]["chosen"] == "backbone"

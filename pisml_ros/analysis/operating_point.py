@@ -56,15 +56,21 @@ def stability_at_points(model, points) -> list:
         Per point: True if the equilibrium there has no eigenvalue with a real part >= 0, False if it
         has, None where no equilibrium was found.
     """
+    return [None if growth is None else bool(growth < 0) for growth in growth_rates_at_points(model, points)]
+
+
+def growth_rates_at_points(model, points) -> list:
+    """The largest real part of the eigenvalues (1/s) of an explicit ``model``'s equilibrium at each
+    operating point of ``points`` (as :func:`stability_at_points`), None where no equilibrium was found."""
     from ..model import ExplicitModel
 
     probe = ExplicitModel(model.state_names, model.input_names, model.terms, model.coefficients,
                           {"reference_points": list(points)})
-    verdicts = []
+    rates = []
     for point in points:
         inputs = [float(v) for v in point["inputs"]]
         try:
-            verdicts.append(bool(np.max(probe.eigenvalues(*inputs).real) < 0))
+            rates.append(float(np.max(probe.eigenvalues(*inputs).real)))
         except (RuntimeError, ValueError, np.linalg.LinAlgError, FloatingPointError):  # no equilibrium
-            verdicts.append(None)
-    return verdicts
+            rates.append(None)
+    return rates

@@ -102,6 +102,11 @@ class IdentConfig:
     # (every term kept: 1.1 / 2.3 % at weight 1000, 1.05 / 2.25 % at 10)
     refine_stability_weight: float = 10.0
     refine_stability_margin: float = 0.1
+    # the prior's weight in the growing-window stages (refine_stability_weight holds in the polish).
+    # Measured with two refinement starts (40 dB, recordings 0 / 1 / 2 / demo, IOD / OOD %): 0:
+    # 0.32 / 0.52, 0.30 / 0.47, 0.31 / 0.39, 1.79 / 3.26; 0.1: 0.38 / 3.60, 0.35 / 0.62, 0.75 / 1.82,
+    # 0.47 / 0.68; 1: 0.95 / 1.81, 0.57 / 3.24, 0.36 / 0.56, 0.31 / 0.84
+    refine_growing_stability_weight: float = 0.0
     # where the prior holds: "records" at the rest states of the small-signal and the training
     # records (a record starts where the plant sat at rest), "smallsignal" at the small-signal
     # records' only. A soft prior: a record can start at a weakly unstable equilibrium (protocol ug
@@ -109,9 +114,22 @@ class IdentConfig:
     # Measured (40 dB, recordings 0 / 1 / 2, spurious unstable modes over ug 0.2-1.1):
     # "smallsignal" none / 0.9-1.1 / 0.2, 0.6-1.1; "records" none / none / none
     refine_stability_points: str = "records"
+    # equilibrium prior of the refinement (every stage): at the same rest states, each equation's
+    # f(x, u) in units of what the noise left in the rest mean makes of it (through the start
+    # model's Jacobian) costs refine_equilibrium_weight·(f/σ)²/2; 0 switches it off. A record that
+    # starts at rest starts at an equilibrium, which pins the integrators' equations along the
+    # equilibria where 40 ms of data hardly move them. Measured (40 dB, recordings 0 / 1 / 2, one
+    # start, IOD / OOD %): weight 0: 0.22 / 0.55, 0.24 / 2.16, 0.41 / 1.45 (spurious unstable at ug
+    # 0.4); 0.01: 0.32 / 0.51, 0.29 / 0.49, 0.47 / 2.13, none spurious; 1: 0.48 / 3.02, 0.30 / 2.59,
+    # 0.38 / 1.82; 0.03: recording 2 0.81 / 1.49
+    refine_equilibrium_weight: float = 0.01
     # where the refinement wins the selection, the sparsest pruned candidate whose free-run training
     # error is within this fraction of the best is the explicit model
     selection_tolerance: float = 0.5
+    # a candidate whose equilibrium at a point where a training record sat at rest has a mode growing
+    # faster than this (1/s) counts as inconsistent there, as one with no equilibrium there; the
+    # candidates with the fewest such points compete (the plant's own boundary mode: +0.25 1/s at ug 1.2)
+    selection_unstable_rate: float = 1.0
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None) -> "IdentConfig":
@@ -173,8 +191,9 @@ class IdentConfig:
             if getattr(self, key) <= 0:
                 raise ConfigError(f"identification config: {key} must be > 0, got {getattr(self, key)}")
         for key in ["backbone_threshold", "backbone_alpha", "coupling_min_separation", "dropout", "lambda_pert", "lambda_sparse",
-                    "distill_threshold", "distill_spread", "refine_max_nfev", "selection_tolerance",
-                    "refine_stability_weight", "refine_stability_margin"]:
+                    "distill_threshold", "distill_spread", "refine_max_nfev", "selection_tolerance", "selection_unstable_rate",
+                    "refine_stability_weight", "refine_stability_margin", "refine_equilibrium_weight",
+                    "refine_growing_stability_weight"]:
             if getattr(self, key) < 0:
                 raise ConfigError(f"identification config: {key} must be >= 0, got {getattr(self, key)}")
         if not re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.device):

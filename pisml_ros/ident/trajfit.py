@@ -78,7 +78,8 @@ class TrajectoryFitter:
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
             on_evaluation=None, keep_going=None, fit_starts_first: bool = False,
-            lambda_stab: float = 0.0, stability_margin: float = 0.1, stability_records=None) -> FitResult:
+            lambda_stab: float = 0.0, stability_margin: float = 0.1, stability_records=None,
+            lambda_eq: float = 0.0) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -113,7 +114,7 @@ class TrajectoryFitter:
         import torch
 
         problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
-                                   lambda_stab, stability_margin, stability_records)
+                                   lambda_stab, stability_margin, stability_records, lambda_eq)
         started = time.monotonic()
         theta = torch.tensor(coef0.ravel()[problem.idx] / problem.scale)
         z = torch.zeros((problem.n_windows, self.n_states))
@@ -180,7 +181,7 @@ class _ShootingProblem:
     """
 
     def __init__(self, fitter: TrajectoryFitter, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
-                 lambda_stab=0.0, stability_margin=0.1, stability_records=None):
+                 lambda_stab=0.0, stability_margin=0.1, stability_records=None, lambda_eq=0.0):
         import torch
 
         torch.set_default_dtype(torch.float64)
@@ -223,16 +224,30 @@ class _ShootingProblem:
         # stability prior: state-gradients of the terms at each anchoring operating point (the
         # records of one point share their rest state: the mean of their steady starts)
         self.rest_gradients = []
+        self.rest_values = []  # equilibrium prior: (term values, 1 / σ of f there) at each rest state
         anchors = smallsignal if stability_records is None else stability_records
-        if anchors is not None and lambda_stab > 0:
+        if anchors is not None and (lambda_stab > 0 or lambda_eq > 0):
             rests: dict = {}
             for tr in anchors:
-                _, rest = steady_start_mean(tr)
+                length, rest = steady_start_mean(tr)
                 if rest is not None:
-                    rests.setdefault(tuple(np.round(tr.u[0], 9)), []).append(rest)
-            self.rest_gradients = [self.terms.gradient(np.concatenate([np.mean(xs, axis=0), u0]))[:, :n]
-                                   for u0, xs in rests.items()]
+                    rests.setdefault(tuple(np.round(tr.u[0], 9)), []).append((length, rest))
+            noise = 1.0 / np.asarray(fitter.weights, dtype=float)
+            for u0, group in rests.items():
+                samples = sum(length for length, _ in group)
+                point = np.concatenate([np.mean([r for _, r in group], axis=0), u0])
+                grad = self.terms.gradient(point)[:, :n]
+                if lambda_stab > 0:
+                    self.rest_gradients.append(grad)
+                if lambda_eq > 0:
+                    # f at a measured rest state is zero up to the noise left in its mean, carried
+                    # through the start model's Jacobian: the prior's unit for each equation
+                    jac = coef0.T @ grad
+                    sigma = np.sqrt((jac ** 2) @ (noise ** 2) / samples)
+                    sigma = np.maximum(sigma, 1e-9 * (1.0 + np.abs(jac).max()))
+                    self.rest_values.append((self.terms.evaluate(point[None])[0], 1.0 / sigma))
         self.sqrt_ls = float(np.sqrt(lambda_stab))
+        self.sqrt_le = float(np.sqrt(lambda_eq))
         self.stability_margin = float(stability_margin)
         self.sqrt_lj = float(np.sqrt(lambda_jac))
 
@@ -370,6 +385,21 @@ class _ShootingProblem:
             return np.zeros(0), np.zeros((0, self.idx.size))
         return np.array(res), np.array(rows)
 
+    def _equilibrium_residuals(self, theta):
+        """Equilibrium prior: ``sqrt(λ_e)·f_j(x_r, u_r)/σ_j`` at each anchoring rest state (a record
+        that starts at rest starts at an equilibrium), and their θ-derivatives (f is linear in θ)."""
+        if not self.rest_values:
+            return np.zeros(0), np.zeros((0, self.idx.size))
+        c = self.coefficients(np.asarray(theta))
+        term_of, row_of = self.term_of.numpy(), self.row_of.numpy()
+        res, jac = [], []
+        for values, inv_sigma in self.rest_values:
+            res.append(self.sqrt_le * (values @ c) * inv_sigma)
+            block = np.zeros((self.n, self.idx.size))
+            block[row_of, np.arange(self.idx.size)] = self.sqrt_le * self.scale * values[term_of] * inv_sigma[row_of]
+            jac.append(block)
+        return np.concatenate(res), np.concatenate(jac)
+
     def _smallsignal_jacobian(self, theta):
         """:meth:`_smallsignal_residuals` and their θ-derivatives, by tangents carried through the
         recursion: the derivative of the discretisation exp(M·dt) in each coefficient's direction is
@@ -417,7 +447,8 @@ class _ShootingProblem:
             traj, _ = self._shoot(theta, z)
             ss = self._smallsignal_residuals(theta)
         stab, _ = self._stability_residuals(theta)
-        value = traj + 0.5 * float((ss * ss).sum()) + 0.5 * float(stab @ stab)
+        eq, _ = self._equilibrium_residuals(theta)
+        value = traj + 0.5 * float((ss * ss).sum()) + 0.5 * float(stab @ stab) + 0.5 * float(eq @ eq)
         return value if np.isfinite(value) else np.inf
 
     def normal_equations(self, theta, z) -> dict:
@@ -430,10 +461,10 @@ class _ShootingProblem:
             j = torch.nan_to_num(j)
             blocks["H"] += j.T @ j
             blocks["g"] += j.T @ torch.nan_to_num(r)
-        stab, j_stab = self._stability_residuals(theta)
-        if stab.size:
-            blocks["H"] += torch.tensor(j_stab.T @ j_stab)
-            blocks["g"] += torch.tensor(j_stab.T @ stab)
+        for res, jac in (self._stability_residuals(theta), self._equilibrium_residuals(theta)):
+            if res.size:
+                blocks["H"] += torch.tensor(jac.T @ jac)
+                blocks["g"] += torch.tensor(jac.T @ res)
         return blocks
 
     def damped_step(self, blocks, mu):
