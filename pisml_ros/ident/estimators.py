@@ -121,7 +121,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     than ``unstable_rate`` (1/s), compete. Measured on the demo recording (40 dB): the
     noise-compensated backbone, unstable at +17 to +31 1/s at every point, scored 2.81 % against the
     refined models' 3.0-3.4 % and was chosen: 2.72 / 4.03 % IOD / OOD on the test records.
-    When that is the refined model or one of its pruned sub-models (names ``pruned …``), the
+    When that is a refined model or one of its pruned sub-models (names ``pruned …``, of the same
+    refinement start: :func:`_refinement_family`), the
     sparsest pruned one within ``tolerance`` (relative) of the refined model's error (or the
     smallest, if larger) takes its place, preferring those whose stability verdicts at the
     training records' operating points (``reference_points``) are the refined model's: the data
@@ -341,9 +342,9 @@ class PISML(_Estimator):
                     candidates[name + suffix] = model
                 scores.update({name + suffix: error for name, error in errors.items()})
             self.metrics_["refine_seconds"] = time.monotonic() - started
-        # 5. the explicit model is the candidate that best reproduces the training records when run
-        # freely from their first samples (refinement that made things worse is dropped), or the
-        # sparsest pruned refinement nearly as good
+        # 5. the explicit model is the candidate that best reproduces the records when run freely
+        # from their rest states or first samples (refinement that made things worse is dropped), or
+        # the sparsest pruned refinement nearly as good
         scores.update({name: training_error(model, scoring) for name, model in candidates.items()
                        if name not in scores})
         self.candidates_ = candidates
@@ -371,7 +372,7 @@ def _refinement_family(name: str) -> str | None:
 
 
 def _stability_anchors(train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig) -> list:
-    """The records whose rest states anchor the refinement's stability prior."""
+    """The records whose rest states anchor the refinement's stability and equilibrium priors."""
     records = list(smallsignal) if smallsignal is not None else []
     return records + list(train) if cfg.refine_stability_points == "records" else records
 
@@ -398,8 +399,9 @@ def _refinement_starts(candidates: dict, scores: dict, points: list, verdicts: d
     everywhere (pruned refinements, IOD / OOD % on the test records; recordings 0, 1, 2 of the
     benchmark, the demo recording): from the merged model 0.32 / 0.51, 0.29 / 0.49, 0.47 / 2.13,
     failed (training error 3.0 %, W ~1500); from the noise-compensated backbone (its LCL part is
-    the better one) 0.34 / 0.35, 1.20 / 3.77, 0.53 / 0.76, 0.24 / 0.48. The selection takes the
-    one that reproduces the training records best.
+    the better one) 0.34 / 0.35, 1.20 / 3.77, 0.53 / 0.76, 0.24 / 0.48. Each start's refinement
+    is a family of candidates (``"refined"``, ``"pruned +B %"``; ``… from <start>`` for the second)
+    and the selection takes the one that reproduces the training and small-signal records best.
     """
     verdicts = {} if verdicts is None else verdicts
     names = [name for name in candidates if name == "distilled" or name.startswith("re-fit")]

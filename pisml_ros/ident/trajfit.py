@@ -13,7 +13,10 @@ Levenberg-Marquardt least squares over these residual kinds:
   slow droop/power modes that 40 ms trajectories cannot;
 - optionally a stability prior: at the rest states of the small-signal records (or of any
   records given), eigenvalues of the model's Jacobian right of ``-margin`` cost
-  ``(Re λ + margin)²`` (first-order eigenvalue perturbation for their slopes).
+  ``(Re λ + margin)²`` (first-order eigenvalue perturbation for their slopes);
+- optionally an equilibrium prior: at the same rest states the model's f(x, u), in units of what
+  the noise left in the rest mean makes of it, costs ``(f / σ)²`` (a record that starts at rest
+  starts at an equilibrium).
 
 The Gauss-Newton normal equations come from forward sensitivities integrated beside
 the states, with the window start states eliminated per window (Schur complement):
@@ -96,7 +99,12 @@ class TrajectoryFitter:
             ``-stability_margin`` (1/s) adds a residual ``sqrt(lambda_stab) * (Re λ + margin)``.
         stability_records : iterable of trajectories, optional
             The records whose rest states (steady starts, grouped by input) anchor the stability
-            prior instead of the small-signal records.
+            and equilibrium priors instead of the small-signal records.
+        lambda_eq : float
+            Weight of the equilibrium prior (0 switches it off): at each anchoring rest state x_r,
+            each equation's ``sqrt(lambda_eq) * f_j(x_r, u_r) / σ_j``, σ_j the spread of f_j that
+            the noise left in the rest mean makes (the start model's Jacobian, the residual weights'
+            noise levels, the number of samples averaged).
         max_nfev : int
             Cost evaluations (the start and every trial step).
         on_evaluation : callable, optional
