@@ -114,7 +114,8 @@ def _with_equilibria(names, candidates: dict, scores: dict, points: list, verdic
 
 def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0,
               verdicts: dict | None = None, unstable_rate: float = np.inf) -> ExplicitModel:
-    """The candidate with the smallest training error, with ``template``'s metadata and the selection.
+    """The candidate with the smallest free-run error in ``scores`` (training records, and the
+    small-signal records where a fit has them), with ``template``'s metadata and the selection.
 
     Only the candidates with the fewest operating points where the training records sat at rest
     (``reference_points``) and the candidate has no equilibrium, or one with a mode growing faster

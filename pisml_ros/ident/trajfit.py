@@ -232,7 +232,7 @@ class _ShootingProblem:
         # stability prior: state-gradients of the terms at each anchoring operating point (the
         # records of one point share their rest state: the mean of their steady starts)
         self.rest_gradients = []
-        self.rest_values = []  # equilibrium prior: (term values, 1 / σ of f there) at each rest state
+        self.rest_values = []  # equilibrium prior: (term values, 1 / σ of f there, θ-slopes) per rest state
         anchors = smallsignal if stability_records is None else stability_records
         if anchors is not None and (lambda_stab > 0 or lambda_eq > 0):
             rests: dict = {}
@@ -253,7 +253,12 @@ class _ShootingProblem:
                     jac = coef0.T @ grad
                     sigma = np.sqrt((jac ** 2) @ (noise ** 2) / samples)
                     sigma = np.maximum(sigma, 1e-9 * (1.0 + np.abs(jac).max()))
-                    self.rest_values.append((self.terms.evaluate(point[None])[0], 1.0 / sigma))
+                    values = self.terms.evaluate(point[None])[0]
+                    # f is linear in θ: the prior's θ-derivatives are fixed, built once here
+                    slopes = np.zeros((n, self.idx.size))
+                    slopes[self.idx % self.shape[1], np.arange(self.idx.size)] = (
+                        self.scale * values[self.idx // self.shape[1]] / sigma[self.idx % self.shape[1]])
+                    self.rest_values.append((values, 1.0 / sigma, slopes))
         self.sqrt_ls = float(np.sqrt(lambda_stab))
         self.sqrt_le = float(np.sqrt(lambda_eq))
         self.stability_margin = float(stability_margin)
@@ -399,14 +404,8 @@ class _ShootingProblem:
         if not self.rest_values:
             return np.zeros(0), np.zeros((0, self.idx.size))
         c = self.coefficients(np.asarray(theta))
-        term_of, row_of = self.term_of.numpy(), self.row_of.numpy()
-        res, jac = [], []
-        for values, inv_sigma in self.rest_values:
-            res.append(self.sqrt_le * (values @ c) * inv_sigma)
-            block = np.zeros((self.n, self.idx.size))
-            block[row_of, np.arange(self.idx.size)] = self.sqrt_le * self.scale * values[term_of] * inv_sigma[row_of]
-            jac.append(block)
-        return np.concatenate(res), np.concatenate(jac)
+        res = [self.sqrt_le * (values @ c) * inv_sigma for values, inv_sigma, _ in self.rest_values]
+        return np.concatenate(res), self.sqrt_le * np.concatenate([slopes for _, _, slopes in self.rest_values])
 
     def _smallsignal_jacobian(self, theta):
         """:meth:`_smallsignal_residuals` and their θ-derivatives, by tangents carried through the
