@@ -539,3 +539,63 @@ def test_a_fit_is_reproducible(train, small):
     second = make_estimator("pisml", config).fit(train, small)
     np.testing.assert_array_equal(first.distilled_.coefficients, second.distilled_.coefficients)
     np.testing.assert_array_equal(first.explicit_model_.coefficients, second.explicit_model_.coefficients)
+
+
+def test_refinements_run_side_by_side_report_from_the_caller_and_stop_together():
+    import threading
+    import time
+
+    from pisml_ros.ident.estimators import _side_by_side
+
+    caller = threading.current_thread()
+    ran_in, reports = [], []
+
+    def job(item, progress):
+        ran_in.append(threading.current_thread())
+        for step in range(1, 4):
+            time.sleep(0.2)
+            progress(step / 3, {f"loss_{item}": step})
+        return item * 10
+
+    def report(fraction, losses):
+        assert threading.current_thread() is caller  # callbacks are called from the fitting thread only
+        reports.append(fraction)
+
+    assert _side_by_side(job, [1, 2], report, workers=2) == [10, 20]  # in the order of the items
+    assert all(t is not caller for t in ran_in) and len(ran_in) == 2
+    assert reports == sorted(reports) and reports[-1] == pytest.approx(1.0, abs=1e-9)
+    # one after the other with one worker: the same results, progress still rising to 1
+    reports.clear()
+    assert _side_by_side(job, [1, 2], report, workers=1) == [10, 20]
+    assert reports == sorted(reports) and reports[-1] == pytest.approx(1.0)
+
+    # a job that fails stops the other at its next progress call, and its error is raised
+    stopped = []
+
+    def failing(item, progress):
+        if item == "bad":
+            time.sleep(0.3)
+            raise FloatingPointError("window blew up")
+        try:
+            for _ in range(100):
+                time.sleep(0.05)
+                progress(0.0, {})
+        except Exception as err:
+            stopped.append(type(err).__name__)
+            raise
+        return "finished"
+
+    started = time.monotonic()
+    with pytest.raises(FloatingPointError, match="window blew up"):
+        _side_by_side(failing, ["good", "bad"], lambda fraction, losses: None, workers=2)
+    assert stopped == ["_StoppedBeside"] and time.monotonic() - started < 3.0
+
+    # a cancellation raised by the report reaches the caller, and the jobs stop
+    stopped.clear()
+
+    def cancel(fraction, losses):
+        raise IdentificationCancelled("cancelled during refinement")
+
+    with pytest.raises(IdentificationCancelled):
+        _side_by_side(failing, ["good", "good"], cancel, workers=2)
+    assert stopped == ["_StoppedBeside", "_StoppedBeside"]

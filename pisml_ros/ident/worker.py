@@ -20,7 +20,7 @@ import threading
 from typing import Iterator
 
 from ..model import ExplicitModel
-from .estimators import StageUpdate
+from .estimators import StageUpdate, blas_threads
 
 
 @dataclasses.dataclass
@@ -80,19 +80,9 @@ def _numbers(values: dict) -> dict:
     return out
 
 
-@contextlib.contextmanager
 def _blas_limits(threads: int | None):
     """At most ``threads`` threads in the BLAS pools while training (torch's: :func:`_import_training`)."""
-    if not threads:
-        yield
-        return
-    try:
-        from threadpoolctl import threadpool_limits
-        blas = threadpool_limits(limits=threads)
-    except ImportError:  # BLAS pools keep their size
-        blas = contextlib.nullcontext()
-    with blas:
-        yield
+    return blas_threads(threads) if threads else contextlib.nullcontext()
 
 
 def _import_training(threads: int | None) -> None:
