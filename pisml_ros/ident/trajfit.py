@@ -30,6 +30,7 @@ import dataclasses
 import time
 
 import numpy as np
+from scipy.linalg.blas import dsyrk as _syrk
 
 from ..data import Dataset
 from ..data.dataset import steady_start_mean
@@ -213,6 +214,8 @@ class _ShootingProblem:
         self.scale_t = torch.tensor(self.scale)
         self.idx_t = torch.tensor(self.idx)
         self.support_cols = torch.arange(self.idx.size)
+        # the same entries of a (states × coefficients) tangent flattened row by row
+        self.support_flat = self.row_of * self.idx.size + self.support_cols
         # residuals are (x - x_measured) * weight / sqrt(window + 1); z is in units of 1 / weight
         self.res_weight = torch.tensor(fitter.weights) / np.sqrt(fitter.window + 1)
         self.x_unit = torch.tensor(1.0 / fitter.weights)
@@ -295,7 +298,9 @@ class _ShootingProblem:
             s_c = torch.zeros((n_win, n, n_c)) if "c" in tangents else None
             blocks = {"A": torch.zeros((n_win, n, n)), "bz": torch.zeros((n_win, n))}
             if s_c is not None:
-                blocks.update(H=torch.zeros((n_c, n_c)), g=torch.zeros(n_c), E=torch.zeros((n_win, n, n_c)))
+                blocks.update(g=torch.zeros(n_c), E=torch.zeros((n_win, n, n_c)))
+                # JᵀJ of the coefficients by BLAS syrk (half the work of a product; upper triangle)
+                hessian = np.zeros((n_c, n_c), order="F")
 
         def accumulate(x, k):
             nonlocal cost
@@ -309,9 +314,10 @@ class _ShootingProblem:
             blocks["A"] += jz.transpose(1, 2) @ jz
             blocks["bz"] += (jz.transpose(1, 2) @ r[..., None])[..., 0]
             if s_c is not None:
-                jc = torch.nan_to_num(s_c * w[None, :, None], nan=0.0, posinf=0.0, neginf=0.0) * alive
+                jc = torch.nan_to_num_(s_c * w[None, :, None], nan=0.0, posinf=0.0, neginf=0.0).mul_(alive)
                 flat = jc.reshape(-1, n_c)
-                blocks["H"] += flat.T @ flat
+                if n_c:
+                    _syrk(1.0, flat.numpy().T, beta=1.0, c=hessian, trans=0, lower=0, overwrite_c=1)
                 blocks["g"] += flat.T @ r.reshape(-1)
                 blocks["E"] += jz.transpose(1, 2) @ jc
 
@@ -324,9 +330,9 @@ class _ShootingProblem:
             jx = torch.einsum("wts,tj->wjs", grad[..., :n], c)  # (n_win, n, n)
             k_c = None
             if y_c is not None:
-                k_c = jx @ y_c
+                k_c = torch.einsum("wjs,wsc->wjc", jx, y_c).contiguous()  # ~1.5x a bmm at these sizes
                 # f is linear in the coefficients: d f_j / d c_(term, j) is the term's value
-                k_c[:, self.row_of, self.support_cols] += values[:, self.term_of] * self.scale_t
+                k_c.view(n_win, -1).index_add_(1, self.support_flat, values[:, self.term_of] * self.scale_t)
             return values @ c, jx @ y_z, k_c
 
         # the tangents are the big tensors of the pass (windows × states × coefficients): one
@@ -350,6 +356,9 @@ class _ShootingProblem:
                 advance(s_z, z1, z2, z3, z4)
                 advance(s_c, c1, c2, c3, c4)
             accumulate(x, k + 1)
+        if s_c is not None:
+            upper = torch.from_numpy(np.triu(hessian))
+            blocks["H"] = upper + upper.T - torch.diag(torch.diagonal(upper))
         return cost, blocks
 
     def _smallsignal_residuals(self, theta):
