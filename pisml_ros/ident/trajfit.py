@@ -30,6 +30,7 @@ import dataclasses
 import time
 
 import numpy as np
+import scipy.linalg
 from scipy.linalg.blas import dsyrk as _syrk
 
 from ..data import Dataset
@@ -387,8 +388,6 @@ class _ShootingProblem:
         """Stability prior: residuals ``sqrt(λ_s)·(Re λ + margin)`` of the eigenvalues of the model's
         Jacobian at the anchoring records' rest states whose real part exceeds ``-margin``, and their
         derivatives in θ (first-order eigenvalue perturbation: dλ = uᴴ dA v / uᴴv)."""
-        import scipy.linalg
-
         c = self.coefficients(np.asarray(theta))
         res, rows = [], []
         for grad in self.rest_gradients:
@@ -494,7 +493,12 @@ class _ShootingProblem:
         a_b = torch.linalg.solve(a, blocks["bz"][..., None])[..., 0]
         reduced = blocks["H"] + torch.diag(mu * d_c) - torch.einsum("wkc,wkd->cd", blocks["E"], a_e)
         g = blocks["g"] - torch.einsum("wkc,wk->c", blocks["E"], a_b)
-        step_c = -torch.linalg.lstsq(reduced, g[:, None]).solution[:, 0] if g.numel() else g
+        # LAPACK gelsy through scipy: torch's CPU lstsq (the same driver) gave a different step on
+        # every call for the same matrix (benchmark recording, condition number 4e10), so that the
+        # same data gave different models from run to run
+        step_c = -torch.from_numpy(scipy.linalg.lstsq(
+            reduced.numpy(), g.numpy(), cond=np.finfo(float).eps * g.numel(), lapack_driver="gelsy",
+            check_finite=False)[0]) if g.numel() else g
         step_z = -(a_b + torch.einsum("wkc,c->wk", a_e, step_c))
         # model reduction -(g·δ + ½ δᵀJᵀJδ) = ½ δᵀ(μD)δ - ½ gᵀδ for the exact damped step
         predicted = 0.5 * float(mu * (d_c * step_c ** 2).sum() + mu * (d_z * step_z ** 2).sum()
