@@ -443,11 +443,13 @@ class _StoppedBeside(Exception):
     """Raised in a job of :func:`_side_by_side` when another job failed or the run was cancelled."""
 
 
-def blas_threads(limit: int):
-    """A context with at most ``limit`` threads in the BLAS pools (threadpoolctl; without it the
-    pools keep their size)."""
+def blas_threads(limit: int | None):
+    """A context with at most ``limit`` threads in the BLAS pools (threadpoolctl; without it, or
+    with ``limit`` None, the pools keep their size)."""
     import contextlib
 
+    if not limit:
+        return contextlib.nullcontext()
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:

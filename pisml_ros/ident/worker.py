@@ -80,11 +80,6 @@ def _numbers(values: dict) -> dict:
     return out
 
 
-def _blas_limits(threads: int | None):
-    """At most ``threads`` threads in the BLAS pools while training (torch's: :func:`_import_training`)."""
-    return blas_threads(threads) if threads else contextlib.nullcontext()
-
-
 def _import_training(threads: int | None) -> None:
     """Import what the hybrid training needs (torch, torchdiffeq: ~1.4 s) and size torch's pool.
 
@@ -131,7 +126,7 @@ def _serve(conn, stop, threads: int | None) -> None:
     try:
         try:
             estimator = make_estimator(method, IdentConfig.from_mapping(config))
-            with _blas_limits(threads):
+            with blas_threads(threads):  # the BLAS pools' share (torch's is set in _import_training)
                 estimator.fit(train, smallsignal, callback=callback, should_stop=stop.is_set)
             final = estimator.explicit_model_ if estimator.explicit_model_ is not None else estimator.model_
             send("done", _pack(final), _numbers(estimator.metrics_), getattr(estimator, "history_", {}), "")
