@@ -84,3 +84,30 @@ def test_root_locus_of_the_plant_finds_its_boundary():
     assert locus["boundaries"] == pytest.approx([1.1661], abs=1e-3)
     assert len(locus["eigenvalues"][0]) == 13 and not locus["errors"]
     assert locus["max_real"][-1] > 0 > locus["max_real"][0]
+
+
+def test_demo_takes_the_reports_on_the_final_model_not_on_an_earlier_stage_of_its_run():
+    from builtin_interfaces.msg import Time
+    from pisml_msgs.msg import StabilityReport
+    from std_msgs.msg import Header, String
+
+    from pisml_ros.ros.demo import final_analysis
+
+    def report(ug, sec, max_real):
+        return StabilityReport(model_id="pisml-1", input_values=[ug, 0.0], max_real_part=max_real,
+                               header=Header(stamp=Time(sec=sec, nanosec=0)))
+
+    def locus(model_id, tag):
+        return String(data=json.dumps({"model_id": model_id, "tag": tag}))
+
+    # the run's first explicit model (published at 10 s) was analysed; the final one came at 100 s
+    final = model_message(_model(), "explicit", "pisml-1", {"final": 1}, Time(sec=100, nanosec=5))
+    arrivals = [(0, report(0.8, 11, 15.0)), (1, report(1.2, 11, 13.0))]
+    loci = [(2, locus("pisml-1", "first"))]
+    assert final_analysis(final, arrivals, loci) == ({}, None)
+    arrivals += [(3, report(0.8, 101, -0.3)), (4, report(0.8, 100, -9.0)), (5, report(1.2, 102, -0.2))]
+    reports, found = final_analysis(final, arrivals, loci)
+    assert reports[0.8].max_real_part == -0.3 and reports[1.2].max_real_part == -0.2  # 100 s < 100 s + 5 ns
+    assert found is None  # its root locus follows its reports
+    loci += [(6, locus("other-1", "other")), (7, locus("pisml-1", "final"))]
+    assert final_analysis(final, arrivals, loci)[1]["tag"] == "final"

@@ -16,6 +16,7 @@ identifier's ``method``/``overrides``), with the demo's sources and folders.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -115,8 +116,12 @@ class Graph:
         rclpy.init(args=[sys.argv[0]])
         self.node = rclpy.create_node("pisml_demo")
         self.node.create_subscription(IdentifiedModel, "/pisml/model", self.models.append, latched_qos())
-        self.node.create_subscription(StabilityReport, "/pisml/stability", self.reports.append, latched_qos(32))
-        self.node.create_subscription(String, "/pisml/root_locus", self.loci.append, latched_qos())
+        # reports and loci in one arrival order: a model's root locus follows its reports
+        arrival = itertools.count()
+        self.node.create_subscription(StabilityReport, "/pisml/stability",
+                                      lambda msg: self.reports.append((next(arrival), msg)), latched_qos(32))
+        self.node.create_subscription(String, "/pisml/root_locus",
+                                      lambda msg: self.loci.append((next(arrival), msg)), latched_qos())
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
         for name in NODES:
             log = open(self.logs / f"{name}.log", "w")
@@ -212,12 +217,7 @@ def _watch(graph: Graph, ug_points, timeout: float, say):
         finals = [m for m in graph.models if message_metrics(m).get("final") == 1.0]
         if finals:
             final = finals[-1]
-            reports = {}
-            for r in graph.reports:
-                if r.model_id == final.model_id:
-                    reports[round(float(r.input_values[0]), 6)] = r
-            loci = [json.loads(m.data) for m in graph.loci]
-            locus = next((lc for lc in reversed(loci) if lc.get("model_id") == final.model_id), None)
+            reports, locus = final_analysis(final, graph.reports, graph.loci)
             if not final.model_json:
                 return final, {}, None
             if all(round(ug, 6) in reports for ug in ug_points) and locus is not None:
@@ -225,6 +225,35 @@ def _watch(graph: Graph, ug_points, timeout: float, say):
         if time.monotonic() > deadline:
             raise DemoError(f"no final model and stability reports within {timeout:g} s (last: {last_line}); "
                             f"logs in {graph.logs}")
+
+
+def final_analysis(final, reports: list, loci: list) -> tuple[dict, dict | None]:
+    """The analyser's StabilityReports on the final model by ug, and its root locus (None until it came).
+
+    ``reports`` and ``loci`` are ``(arrival order, message)`` pairs. Every stage of an identifier
+    run shares its model_id: the final model's reports are the ones stamped after the final model
+    was published, its locus the first one with its model_id after them (the analyser publishes a
+    model's locus after its reports). Before, the demo could print the reports on a run's first
+    explicit model as the final model's (stop 18: "UNSTABLE, +15 1/s" at every ug for a final model
+    stable at all four).
+    """
+    published = _nanoseconds(final.header.stamp)
+    by_ug, newest = {}, None
+    for order, msg in reports:
+        if msg.model_id == final.model_id and _nanoseconds(msg.header.stamp) >= published:
+            by_ug[round(float(msg.input_values[0]), 6)] = msg
+            newest = order
+    if newest is None:
+        return by_ug, None
+    for order, msg in loci:
+        locus = json.loads(msg.data)
+        if order > newest and locus.get("model_id") == final.model_id:
+            return by_ug, locus
+    return by_ug, None
+
+
+def _nanoseconds(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def _plant_part(plant):
