@@ -383,10 +383,10 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
     mean fraction, from the calling thread only (the callers' callbacks are not thread-safe);
     ``workers`` overrides how many run at once. An exception from ``report`` (cancellation) or
     from a job stops the other jobs at their next progress call and is raised here. Threads, not
-    processes: the work is in torch and LAPACK calls that release the GIL, and the jobs share the
-    data. Measured on the 40 dB benchmark recording (2 vCPUs): the two refinements took 134 s one
-    after the other (torch on 2 threads), 85 s side by side (one thread each), same models as a
-    single-threaded run (0.320 / 0.516 % IOD / OOD).
+    processes: most of the work is in torch calls that release the GIL (scipy's BLAS ``dsyrk`` in
+    the normal equations holds it), and the jobs share the data. Measured on the 40 dB benchmark
+    recording (2 vCPUs, before the syrk): the two refinements took 134 s one after the other (torch
+    on 2 threads), 85 s side by side (one thread each).
     """
     import threading
     from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
