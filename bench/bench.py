@@ -37,6 +37,10 @@ from pisml_ros.plant.scenarios import Schedule, generate, schedules_for
 from pisml_ros.signals import SCORED_STATES
 
 METHODS = ("pisml", "pisml-nojac", "mod-sindy", "std-sindy", "node")
+# further 40 dB training recordings (scenario and noise seeds; 0 is the main table's): one recording
+# says little where a fit on noisy data is this sensitive to the draw (stop 19: IOD 0.32-1.13 %,
+# OOD 0.72-2.97 % over six recordings with the same settings)
+RECORDINGS = (1, 2, 3, 4)
 PLANTS = {"standard": {}, "saturation": {"current_limit": {"imax": 2.2}}}
 UG_GRID = [0.2, 0.4, 0.6, 0.8, 1.0, 1.1, 1.2]
 BENCH = Path(__file__).resolve().parent
@@ -197,8 +201,38 @@ def write_markdown(results, path):
                 lines.append(f"| {r[key]} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
                              f"{fmt(r.get('wasserstein_ug08'))} | {spurious} | {r.get('n_parameters', '—')} | "
                              f"{fmt(r.get('seconds'))} |")
+    spread = recording_spread(results["runs"])
+    if spread:
+        lines += ["", f"Over the {spread['recordings']} recordings at 40 dB (recording 0 and the table above), median / worst: "
+                  f"IOD {fmt(spread['iod_median'])} / {fmt(spread['iod_worst'])} %, OOD {fmt(spread['ood_median'])} / "
+                  f"{fmt(spread['ood_worst'])} %, time {fmt(spread['seconds_median'])} / {fmt(spread['seconds_worst'])} s; "
+                  f"within IOD ≤ 0.5 % and OOD ≤ 1.0 %: {spread['within_targets']} of {spread['recordings']}; with a "
+                  f"spurious unstable mode: {spread['spurious']}."]
     lines += ["", "Figures: bench/figures/spectra_*.png (eigenvalues at ug 0.8, model vs truth).", ""]
     path.write_text("\n".join(lines))
+
+
+def recording_spread(runs: list) -> dict | None:
+    """PISML at 40 dB over every training recording of a run (the main table's standard-plant fit
+    and the ``recording`` sweep): median and worst IOD, OOD and time, and how many meet the
+    issue's 40 dB targets (IOD ≤ 0.5 %, OOD ≤ 1.0 %). None without sweep rows."""
+    rows = [r for r in runs if r.get("sweep") == "recording"]
+    main_row = [r for r in runs if r.get("sweep") == "main" and r.get("plant") == "standard"
+                and r.get("noise") == "40 dB" and r.get("method") == "pisml"]
+    rows = main_row + rows
+    if len(rows) < 2:
+        return None
+
+    def values(key):
+        return [float(r[key]) if r.get(key) is not None and math.isfinite(float(r[key])) else math.inf for r in rows]
+
+    out = {"recordings": len(rows)}
+    for key in ("iod", "ood", "seconds"):
+        out[f"{key}_median"] = float(np.median(values(key)))
+        out[f"{key}_worst"] = max(values(key))
+    out["within_targets"] = sum(i <= 0.5 and o <= 1.0 for i, o in zip(values("iod"), values("ood")))
+    out["spurious"] = sum(bool(r.get("spurious_unstable")) or "error" in r for r in rows)
+    return out
 
 
 def main(argv=None) -> int:
@@ -242,7 +276,7 @@ def main(argv=None) -> int:
         # (sweep key, value, dataset arguments): error vs number of trajectories, then vs SNR
         for key, value, kwargs in [("n_traj", 6, {"snr": 40.0, "n_traj": 6}),
                                    ("snr", 20.0, {"snr": 20.0}), ("snr", 60.0, {"snr": 60.0}),
-                                   ("recording", 1, {"snr": 40.0, "seed": 1}), ("recording", 2, {"snr": 40.0, "seed": 2})]:
+                                   *[("recording", seed, {"snr": 40.0, "seed": seed}) for seed in RECORDINGS]]:
             plant, train, small, test = datasets({}, **kwargs)
             truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
             row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant, UG_GRID), truth, config,
@@ -267,6 +301,7 @@ def save(args, runs, started, config, final=False):
         "total_seconds": time.monotonic() - started,
         "config": config.to_dict(),
         "runs": [{k: v for k, v in r.items() if not k.startswith("_")} for r in runs],
+        "recording_spread": recording_spread(runs),
     }
     Path(args.out).write_text(json.dumps(results, indent=2, default=float))
     if final:
