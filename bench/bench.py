@@ -207,7 +207,7 @@ def write_markdown(results, path):
                   f"IOD {fmt(spread['iod_median'])} / {fmt(spread['iod_worst'])} %, OOD {fmt(spread['ood_median'])} / "
                   f"{fmt(spread['ood_worst'])} %, time {fmt(spread['seconds_median'])} / {fmt(spread['seconds_worst'])} s; "
                   f"within IOD ≤ 0.5 % and OOD ≤ 1.0 %: {spread['within_targets']} of {spread['recordings']}; with a "
-                  f"spurious unstable mode: {spread['spurious']}."]
+                  f"spurious unstable mode or failed: {spread['spurious']}."]
     lines += ["", "Figures: bench/figures/spectra_*.png (eigenvalues at ug 0.8, model vs truth).", ""]
     path.write_text("\n".join(lines))
 
