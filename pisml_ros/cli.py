@@ -181,7 +181,7 @@ def cmd_data_info(args) -> int:
 
 
 def cmd_analyse(args) -> int:
-    from .analysis.operating_point import operating_point_report, ug_stability_margin
+    from .analysis.operating_point import coverage_note, operating_point_report, ug_stability_margin
     from .plant import EquilibriumError
 
     from .model import EquilibriumNotFound, ExplicitModel
@@ -220,6 +220,9 @@ def cmd_analyse(args) -> int:
     if args.margin:
         print(f"  stability boundaries in ug: {[round(b, 4) for b in report['boundaries']]}; "
               f"margin {report['ug_margin']:.4f} p.u.")
+    note = coverage_note(report.get("data_coverage"))
+    if note:
+        print(f"  note: {note}")
     return 0
 
 

@@ -292,3 +292,23 @@ def test_term_gradients_by_the_product_rule_match_autodiff():
         expected = torch.func.vmap(torch.func.jacfwd(ts.evaluate_torch))(z)
         np.testing.assert_allclose(ts.gradient_torch(z).numpy(), expected.numpy(), atol=1e-12)
         np.testing.assert_allclose(ts.gradient_torch(z[0]).numpy(), ts.gradient(z[0].numpy()), atol=1e-12)
+
+
+def test_data_coverage_flags_operating_points_outside_the_training_inputs():
+    from pisml_ros.analysis.operating_point import coverage_note, data_coverage
+    from pisml_ros.plant import InverterPlant
+
+    model = ExplicitModel(["x"], ["ug", "theta_g"], ["x", "ug"], [[-1.0], [1.0]],
+                          {"training": {"input_range": {"ug": [0.64, 1.2], "theta_g": [-0.17, 0.17]}},
+                           "config": {"roles": {"grid_phase": "theta_g"}}})
+    inside = data_coverage(model, (0.8, 1.0))  # the phase is relative to the inverter's angle: never flagged
+    assert inside == {"input_range": {"ug": [0.64, 1.2], "theta_g": [-0.17, 0.17]}, "outside": [],
+                      "extrapolated": False}
+    assert coverage_note(inside) == ""
+    outside = data_coverage(model, (0.4, 0.0))
+    assert outside["extrapolated"] is True and outside["outside"] == ["ug"]
+    assert coverage_note(outside) == "extrapolated: outside the identification data's ug 0.64-1.2"
+    assert data_coverage(model, (1.2, 0.0))["extrapolated"] is False  # the range's ends are covered
+    # models from before the range was recorded, and the plant, carry none
+    assert data_coverage(ExplicitModel(["x"], ["ug", "theta_g"], ["x"], [[-1.0]]), (0.4, 0.0)) is None
+    assert data_coverage(InverterPlant(), (0.4, 0.0)) is None

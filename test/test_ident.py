@@ -292,6 +292,18 @@ def test_identify_simulate_analyse_cli(tmp_path, train, capsys):
     assert main(["analyse", "--model", str(out), "--ug", "0.9", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert len(report["eigenvalues"]) == 13 and "stable" in report
+    # the model knows the inputs it was fitted on: an operating point outside them is flagged
+    inputs = np.concatenate([tr.u for tr in train])
+    coverage = report["data_coverage"]
+    assert coverage["input_range"]["ug"] == [inputs[:, 0].min(), inputs[:, 0].max()]
+    assert coverage["extrapolated"] is False and coverage["outside"] == []
+    assert main(["analyse", "--model", str(out), "--ug", "0.9"]) == 0
+    assert "extrapolated" not in capsys.readouterr().out
+    narrowed = json.loads(out.read_text())
+    narrowed["metadata"]["training"]["input_range"]["ug"] = [0.95, 1.2]
+    out.write_text(json.dumps(narrowed))
+    assert main(["analyse", "--model", str(out), "--ug", "0.9"]) == 0
+    assert "note: extrapolated: outside the identification data's ug 0.95-1.2" in capsys.readouterr().out
     # user errors: one line, status 2
     assert main(["identify", "--data", str(data), "--method", "nope", "--out", str(out)]) == 2
     assert main(["identify", "--data", str(data), "--set", "epochs=-1", "--out", str(out)]) == 2

@@ -130,6 +130,10 @@ def test_chain_delivers_the_engine_model_and_its_stability(probe, tmp_path, clea
 
 def test_initial_model_is_latched_and_bad_models_do_not_stop_the_analyser(probe, tmp_path, clean_train):
     saved = _offline_model(clean_train).save(tmp_path / "saved.json")
+    # recorded as identified on ug 0.9-1.2 only: its report at 0.8 must say it extrapolates
+    narrowed = json.loads(saved.read_text())
+    narrowed["metadata"]["training"]["input_range"]["ug"] = [0.9, 1.2]
+    saved.write_text(json.dumps(narrowed))
     diags, reports, models = [], [], []
     subs = [probe.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 100),
             probe.create_subscription(StabilityReport, "/pisml/stability", reports.append, latched_qos(10))]
@@ -162,6 +166,10 @@ def test_initial_model_is_latched_and_bad_models_do_not_stop_the_analyser(probe,
         assert spin_until(probe, lambda: [r for r in reports if r.model_id == "initial:saved"], 40.0), \
             ident.log_path.read_text() + analyser.log_path.read_text()
         assert spin_until(probe, lambda: analyser_status().level == DiagnosticStatus.OK, 10.0)  # recovered
+        report = [r for r in reports if r.model_id == "initial:saved"][-1]
+        assert report.message.endswith(" (extrapolated: outside the identification data's ug 0.9-1.2)"), report.message
+        assert spin_until(probe, lambda: diagnostic_values(
+            diags, "pisml: stability ug=0.8")[1].get("extrapolated") == "true", 10.0)
         late = rclpy.create_node("pisml_late_model_subscriber")
         late.create_subscription(IdentifiedModel, "/pisml/model", models.append, latched_qos())
         assert spin_until(late, lambda: models, 20.0)

@@ -29,7 +29,57 @@ def operating_point_report(system, ug: float, theta_g: float = 0.0) -> dict:
     report = {"operating_point": {"ug": float(ug), "theta_g": float(theta_g),
                                   "state": {n: float(v) for n, v in zip(names, x)}}}
     report.update(summary.to_dict())
+    coverage = data_coverage(system, (ug, theta_g))
+    if coverage is not None:
+        report["data_coverage"] = coverage
     return report
+
+
+def data_coverage(system, inputs) -> dict | None:
+    """Whether an operating point lies inside the inputs an identified model was fitted on.
+
+    Parameters
+    ----------
+    system
+        An identified model whose ``metadata["training"]["input_range"]`` holds ``{input: [min,
+        max]}`` (models identified before that key existed, and the plant, have none).
+    inputs : sequence of float
+        The operating point, in the order of ``system.input_names``.
+
+    Returns
+    -------
+    dict or None
+        ``{"input_range": {input: [min, max]}, "outside": [inputs out of range], "extrapolated":
+        bool}``; None where the system carries no range. The grid phase (role ``grid_phase`` of
+        the model's configuration) is not checked: the equations see it only relative to the
+        inverter's angle, so every phase is covered.
+    """
+    metadata = getattr(system, "metadata", None) or {}
+    ranges = (metadata.get("training") or {}).get("input_range")
+    if not ranges:
+        return None
+    phase = ((metadata.get("config") or {}).get("roles") or {}).get("grid_phase", "theta_g")
+    outside = []
+    for name, value in zip(system.input_names, inputs):
+        if name == phase or name not in ranges:
+            continue
+        low, high = ranges[name]
+        tolerance = 1e-9 * max(1.0, abs(low), abs(high))
+        if not low - tolerance <= float(value) <= high + tolerance:
+            outside.append(name)
+    return {"input_range": {name: list(map(float, r)) for name, r in ranges.items()}, "outside": outside,
+            "extrapolated": bool(outside)}
+
+
+def coverage_note(coverage: dict | None) -> str:
+    """One line on an extrapolated operating point (``report["data_coverage"]`` of
+    :func:`operating_point_report`), e.g. ``"extrapolated: outside the identification data's ug
+    0.64-1.2"``; empty where the point is covered or nothing is known."""
+    if not coverage or not coverage.get("extrapolated"):
+        return ""
+    ranges = coverage["input_range"]
+    return "extrapolated: outside the identification data's " + ", ".join(
+        f"{name} {ranges[name][0]:.4g}-{ranges[name][1]:.4g}" for name in coverage["outside"])
 
 
 def max_real_part(system, ug: float, theta_g: float = 0.0) -> float:

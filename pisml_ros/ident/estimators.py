@@ -80,9 +80,15 @@ class _Estimator:
 
 
 def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset | None) -> dict:
+    records = [*train, *(smallsignal if smallsignal is not None else [])]
+    inputs = np.concatenate([tr.u for tr in records])
+    # where the data were: an analysis outside this range extrapolates (analysis.data_coverage)
+    input_range = {name: [float(inputs[:, j].min()), float(inputs[:, j].max())]
+                   for j, name in enumerate(train.input_names)}
     return {"method": method, "config": config.to_dict(), "reference_points": reference_points(train),
             "training": {"trajectories": len(train), "samples": train.n_samples,
-                         "smallsignal_trajectories": len(smallsignal) if smallsignal is not None else 0}}
+                         "smallsignal_trajectories": len(smallsignal) if smallsignal is not None else 0,
+                         "input_range": input_range}}
 
 
 def _growth_rates(name: str, candidates: dict, points: list, cache: dict) -> list:

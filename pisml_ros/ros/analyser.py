@@ -33,7 +33,7 @@ from rclpy.node import Node  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from ..analysis.margins import distance_to_boundary, stability_boundaries  # noqa: E402
-from ..analysis.operating_point import operating_point_report  # noqa: E402
+from ..analysis.operating_point import coverage_note, operating_point_report  # noqa: E402
 from ..fileio import atomic_write_text  # noqa: E402
 from .conversions import failed_stability_message, model_from_message, stability_message  # noqa: E402
 
@@ -228,11 +228,15 @@ class AnalyserNode(Node):
                 level, message = DiagnosticStatus.ERROR, "unstable"
             elif report["min_damping"] < self.min_damping or report["ug_margin"] < self.min_ug_margin:
                 level, message = DiagnosticStatus.WARN, "margin below threshold"
+            # a verdict outside the identification data rests on the model's extrapolation: say so
+            note = coverage_note(report.get("data_coverage"))
+            message += f" ({note})" if note else ""
             msg.message = message
             self.stability.publish(msg)
             statuses.append(status(name, level, f"{model_id}: {message}", {
                 "max_real_part": f"{report['max_real']:.6g}", "min_damping_ratio": f"{report['min_damping']:.6g}",
-                "ug_margin": f"{report['ug_margin']:.6g}", "model_id": model_id}))
+                "ug_margin": f"{report['ug_margin']:.6g}", "model_id": model_id,
+                "extrapolated": str(bool(note)).lower()}))
             self.get_logger().info(f"{model_id} at ug={ug:g}: {message}, max real part {report['max_real']:.4g} 1/s, "
                                    f"ug margin {report['ug_margin']:.4g}")
         if locus is not None:
