@@ -218,8 +218,11 @@ def cmd_analyse(args) -> int:
                                           report["dominant_states"]):
         print(f"  {re:12.4f} {im:+13.4f}j  {zeta:8.4f}  {freq:10.3f}  {', '.join(dom)}")
     if args.margin:
-        print(f"  stability boundaries in ug: {[round(b, 4) for b in report['boundaries']]}; "
-              f"margin {report['ug_margin']:.4f} p.u.")
+        coverage = report.get("data_coverage")
+        low, high = coverage["input_range"].get(system.input_names[0], (-math.inf, math.inf)) if coverage else (
+            -math.inf, math.inf)
+        bounds = [f"{b:.4g}" + ("" if low <= b <= high else " (extrapolated)") for b in report["boundaries"]]
+        print(f"  stability boundaries in ug: [{', '.join(bounds)}]; margin {report['ug_margin']:.4f} p.u.")
     note = coverage_note(report.get("data_coverage"))
     if note:
         print(f"  note: {note}")

@@ -304,6 +304,8 @@ def test_identify_simulate_analyse_cli(tmp_path, train, capsys):
     out.write_text(json.dumps(narrowed))
     assert main(["analyse", "--model", str(out), "--ug", "0.9"]) == 0
     assert "note: extrapolated: outside the identification data's ug 0.95-1.2" in capsys.readouterr().out
+    assert main(["analyse", "--model", str(out), "--ug", "1.0", "--margin"]) == 0
+    assert "stability boundaries in ug: [" in capsys.readouterr().out
     # user errors: one line, status 2
     assert main(["identify", "--data", str(data), "--method", "nope", "--out", str(out)]) == 2
     assert main(["identify", "--data", str(data), "--set", "epochs=-1", "--out", str(out)]) == 2

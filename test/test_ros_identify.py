@@ -110,6 +110,8 @@ def test_chain_delivers_the_engine_model_and_its_stability(probe, tmp_path, clea
         assert files["model_id"] == msg.model_id and set(files["operating_points"]) == {"0.8", "1"}
         locus = json.loads((tmp_path / "an" / "root_locus.json").read_text())
         assert len(locus["ug"]) == len(locus["eigenvalues"]) == 23
+        inputs = np.concatenate([tr.u for tr in read_csv(clean_train)])
+        assert locus["input_range"]["ug"] == pytest.approx([inputs[:, 0].min(), inputs[:, 0].max()])
 
         # late subscribers (a new node) still get the latched model, all reports and the root locus
         late = rclpy.create_node("pisml_late_subscriber")

@@ -33,7 +33,7 @@ from rclpy.node import Node  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from ..analysis.margins import distance_to_boundary, stability_boundaries  # noqa: E402
-from ..analysis.operating_point import coverage_note, operating_point_report  # noqa: E402
+from ..analysis.operating_point import coverage_note, data_coverage, operating_point_report  # noqa: E402
 from ..fileio import atomic_write_text  # noqa: E402
 from .conversions import failed_stability_message, model_from_message, stability_message  # noqa: E402
 
@@ -241,6 +241,9 @@ class AnalyserNode(Node):
                                    f"ug margin {report['ug_margin']:.4g}")
         if locus is not None:
             locus["model_id"] = model_id
+            coverage = data_coverage(system, (low, theta_g))
+            # where the boundaries rest on data: the inputs the model was identified on (None: unknown)
+            locus["input_range"] = coverage["input_range"] if coverage else None
             self.locus.publish(String(data=json.dumps(locus)))
             bounds = [round(b, 4) for b in locus["boundaries"]]
             self.get_logger().info(f"{model_id}: stability boundaries in ug {bounds}")
