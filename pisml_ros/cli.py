@@ -151,6 +151,15 @@ def cmd_identify(args) -> int:
     model.save(out)
     print(f"{args.method}: {model.n_parameters} nonzero coefficients over {len(model.terms)} terms, "
           f"{est.metrics_['seconds']:.1f} s; wrote {out}")
+    ranges = (model.metadata.get("training") or {}).get("input_range") or {}
+    phase = config.roles.grid_phase
+    covered = ", ".join(f"{name} {low:.4g}-{high:.4g}" for name, (low, high) in ranges.items() if name != phase)
+    selection = model.metadata.get("selection") or {}
+    if covered:
+        # analyses outside this range extrapolate (pisml analyse says so)
+        print(f"  identified on {covered}" + (
+            f"; chosen: {selection['chosen']} (free-run error on the records "
+            f"{selection['training_error_pct'][selection['chosen']]:.3g} %)" if selection.get("chosen") else ""))
     if args.equations:
         for line in model.equations(digits=5):
             print("  " + line)

@@ -283,6 +283,8 @@ def test_identify_simulate_analyse_cli(tmp_path, train, capsys):
     data = write_dataset(train, tmp_path / "train.csv")
     out = tmp_path / "model.json"
     assert main(["identify", "--data", str(data), "--method", "mod-sindy", "--out", str(out), "--quiet"]) == 0
+    low, high = min(tr.u[:, 0].min() for tr in train), max(tr.u[:, 0].max() for tr in train)
+    assert f"identified on ug {low:.4g}-{high:.4g}\n" in capsys.readouterr().out
     model = ExplicitModel.load(out)
     assert model.metadata["identification"]["method"] == "mod-sindy"
     pred = tmp_path / "pred.csv"
