@@ -96,6 +96,7 @@ def _simulate_model(args) -> int:
 def cmd_identify(args) -> int:
     import time as _time
 
+    from .analysis.operating_point import identified_input_range
     from .data import concat_datasets, read_dataset
     from .ident import METHODS, ConfigError, IdentConfig, make_estimator
 
@@ -151,9 +152,8 @@ def cmd_identify(args) -> int:
     model.save(out)
     print(f"{args.method}: {model.n_parameters} nonzero coefficients over {len(model.terms)} terms, "
           f"{est.metrics_['seconds']:.1f} s; wrote {out}")
-    ranges = (model.metadata.get("training") or {}).get("input_range") or {}
-    phase = config.roles.grid_phase
-    covered = ", ".join(f"{name} {low:.4g}-{high:.4g}" for name, (low, high) in ranges.items() if name != phase)
+    covered = ", ".join(f"{name} {low:.4g}-{high:.4g}" for name, (low, high) in
+                        (identified_input_range(model) or {}).items())
     selection = model.metadata.get("selection") or {}
     if covered:
         # analyses outside this range extrapolate (pisml analyse says so)

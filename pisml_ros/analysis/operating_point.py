@@ -35,14 +35,27 @@ def operating_point_report(system, ug: float, theta_g: float = 0.0) -> dict:
     return report
 
 
+def identified_input_range(system) -> dict | None:
+    """The inputs an identified model was fitted on, ``{input: [min, max]}`` from its
+    ``metadata["training"]["input_range"]``, without the grid phase (role ``grid_phase`` of the
+    model's configuration: the equations see it only relative to the inverter's angle, so every
+    phase is covered). None where the system carries no range (the plant; models identified
+    before the range was recorded)."""
+    metadata = getattr(system, "metadata", None) or {}
+    ranges = (metadata.get("training") or {}).get("input_range")
+    if not ranges:
+        return None
+    phase = ((metadata.get("config") or {}).get("roles") or {}).get("grid_phase", "theta_g")
+    return {name: [float(low), float(high)] for name, (low, high) in ranges.items() if name != phase}
+
+
 def data_coverage(system, inputs) -> dict | None:
     """Whether an operating point lies inside the inputs an identified model was fitted on.
 
     Parameters
     ----------
     system
-        An identified model whose ``metadata["training"]["input_range"]`` holds ``{input: [min,
-        max]}`` (models identified before that key existed, and the plant, have none).
+        An identified model (see :func:`identified_input_range`).
     inputs : sequence of float
         The operating point, in the order of ``system.input_names``.
 
@@ -50,25 +63,19 @@ def data_coverage(system, inputs) -> dict | None:
     -------
     dict or None
         ``{"input_range": {input: [min, max]}, "outside": [inputs out of range], "extrapolated":
-        bool}``; None where the system carries no range. The grid phase (role ``grid_phase`` of
-        the model's configuration) is not checked: the equations see it only relative to the
-        inverter's angle, so every phase is covered.
+        bool}``; None where the system carries no range.
     """
-    metadata = getattr(system, "metadata", None) or {}
-    ranges = (metadata.get("training") or {}).get("input_range")
-    if not ranges:
+    ranges = identified_input_range(system)
+    if ranges is None:
         return None
-    phase = ((metadata.get("config") or {}).get("roles") or {}).get("grid_phase", "theta_g")
     outside = []
     for name, value in zip(system.input_names, inputs):
-        if name == phase or name not in ranges:
-            continue
-        low, high = ranges[name]
-        tolerance = 1e-9 * max(1.0, abs(low), abs(high))
-        if not low - tolerance <= float(value) <= high + tolerance:
-            outside.append(name)
-    return {"input_range": {name: list(map(float, r)) for name, r in ranges.items()}, "outside": outside,
-            "extrapolated": bool(outside)}
+        if name in ranges:
+            low, high = ranges[name]
+            tolerance = 1e-9 * max(1.0, abs(low), abs(high))
+            if not low - tolerance <= float(value) <= high + tolerance:
+                outside.append(name)
+    return {"input_range": ranges, "outside": outside, "extrapolated": bool(outside)}
 
 
 def coverage_note(coverage: dict | None) -> str:
