@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum_wasserstein
+from pisml_ros.analysis.operating_point import identified_input_range
 from pisml_ros.ident import IdentConfig, make_estimator
 from pisml_ros.ident.library import monomial_basis
 from pisml_ros.plant import InverterPlant
@@ -109,6 +110,16 @@ def rd_terms_found(model) -> int:
                for state, terms in RD_TERMS.items() for term in terms)
 
 
+def spurious_text(row) -> str:
+    """The ug points of a run's spurious unstable modes, those inside the ug range the model was
+    identified on marked "(in data)"; "none", or "error" for a failed fit."""
+    points = row.get("spurious_unstable", [])
+    if not points:
+        return "error" if "error" in row else "none"
+    low, high = row.get("data_ug_range") or (math.inf, -math.inf)
+    return ", ".join(f"{g}" + (" (in data)" if low <= g <= high else "") for g in points)
+
+
 def finite(x):
     return None if x is None or not np.isfinite(x) else float(x)
 
@@ -144,6 +155,8 @@ def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, lab
                               and (model_spectra[g] is None or model_spectra[g].real.max() <= 0)]
     if est.explicit_model_ is not None:
         row["rd_terms_found"] = rd_terms_found(est.explicit_model_)
+        # the grid voltages the model was identified on: a spurious mode inside them contradicts data
+        row["data_ug_range"] = (identified_input_range(est.explicit_model_) or {}).get("ug")
     if hasattr(est, "hybrid_"):
         row["hybrid_parameters"] = int(est.hybrid_.n_parameters)
         row["sweep_hybrid"] = [finite(e) for e in sweep_errors(est.hybrid_, sweep)]
@@ -166,7 +179,9 @@ def write_markdown(results, path):
              f"mode {results['mode']}, total {results['total_seconds']:.0f} s.", "",
              "Errors ε (%) against the clean truth: IOD = test trajectory with the phase jump, 0–20 ms; "
              "OOD = sag to 0.4 p.u., 20–40 ms. W = Wasserstein distance of spectra (1/s). "
-             "'—' = failed (diverged / no equilibrium).", "",
+             "'—' = failed (diverged / no equilibrium). Spurious unstable: ug points (0.2–1.1) where the model "
+             "has an unstable mode and the plant none; '(in data)': inside the grid voltages the training "
+             "and small-signal records span (elsewhere the model extrapolates).", "",
              "Rd terms: how many of the six current×current monomials that vo = vc + Rd·(il − ig) brings "
              "into d(Pf)/dt and d(Qf)/dt the explicit model has.", "",
              "| plant | noise | method | IOD % | OOD % | W(ug 0.8) | W mean 0.2–1.2 | spurious unstable | "
@@ -177,7 +192,7 @@ def write_markdown(results, path):
             continue
         lines.append(f"| {r['plant']} | {r['noise']} | {r['method']} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
                      f"{fmt(r.get('wasserstein_ug08'))} | {fmt(r.get('wasserstein_mean'))} | "
-                     f"{', '.join(map(str, r.get('spurious_unstable', []))) or ('error' if 'error' in r else 'none')} | "
+                     f"{spurious_text(r)} | "
                      f"{r.get('n_parameters', '—')} | {fmt(r.get('rd_terms_found')) + ('/6' if 'rd_terms_found' in r else '')} | {fmt(r.get('seconds'))} |")
     hyb = [r for r in results["runs"] if r.get("sweep_hybrid") and r.get("sweep") == "main"]
     if hyb:
@@ -201,7 +216,7 @@ def write_markdown(results, path):
                       f"| {key} | IOD % | OOD % | W(ug 0.8) | spurious unstable | parameters | time s |",
                       "|---|---|---|---|---|---|---|"]
             for r in rows:
-                spurious = ", ".join(map(str, r.get("spurious_unstable", []))) or ("error" if "error" in r else "none")
+                spurious = spurious_text(r)
                 lines.append(f"| {r[key]} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
                              f"{fmt(r.get('wasserstein_ug08'))} | {spurious} | {r.get('n_parameters', '—')} | "
                              f"{fmt(r.get('seconds'))} |")
@@ -211,7 +226,8 @@ def write_markdown(results, path):
                   f"IOD {fmt(spread['iod_median'])} / {fmt(spread['iod_worst'])} %, OOD {fmt(spread['ood_median'])} / "
                   f"{fmt(spread['ood_worst'])} %, time {fmt(spread['seconds_median'])} / {fmt(spread['seconds_worst'])} s; "
                   f"within IOD ≤ 0.5 % and OOD ≤ 1.0 %: {spread['within_targets']} of {spread['recordings']}; with a "
-                  f"spurious unstable mode or failed: {spread['spurious']}."]
+                  f"spurious unstable mode or failed: {spread['spurious']} (a spurious mode inside the data's ug "
+                  f"range: {spread.get('spurious_in_data', '—')})."]
     lines += ["", "Figures: bench/figures/spectra_*.png (eigenvalues at ug 0.8, model vs truth).", ""]
     path.write_text("\n".join(lines))
 
@@ -236,6 +252,7 @@ def recording_spread(runs: list) -> dict | None:
         out[f"{key}_worst"] = max(values(key))
     out["within_targets"] = sum(i <= 0.5 and o <= 1.0 for i, o in zip(values("iod"), values("ood")))
     out["spurious"] = sum(bool(r.get("spurious_unstable")) or "error" in r for r in rows)
+    out["spurious_in_data"] = sum(" (in data)" in spurious_text(r) for r in rows)
     return out
 
 
