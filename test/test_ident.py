@@ -545,6 +545,65 @@ def test_integrator_equations_keep_the_constant_and_plain_signals_only():
     assert none.all()
 
 
+def test_filter_equations_keep_the_physics_of_a_rotating_frame_only():
+    from pisml_ros.ident.library import filter_row_mask
+
+    terms = ["1", "il_d", "Pf*vc_q", "Pf*vc_d", "Pf*ig_q", "Pf*ig_d", "ug*sin(delta - theta_g)",
+             "ug*cos(theta_g - delta)", "ig_d**2", "vc_d*ig_d + vc_q*ig_q", "sin(delta)", "Pf", "ug", "gamma_d"]
+    mask = filter_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles())
+
+    def allowed(state):
+        return [t for t, keep in zip(terms, mask[:, STATE_NAMES.index(state)]) if keep]
+
+    grid = ["ug*sin(delta - theta_g)", "ug*cos(theta_g - delta)"]
+    # each row keeps the dq signals, the grid terms and the frame coupling with its own pair's
+    # other axis only (no power or controller state, no input alone)
+    assert allowed("vc_d") == ["1", "il_d", "Pf*vc_q", *grid]
+    assert allowed("vc_q") == ["1", "il_d", "Pf*vc_d", *grid]
+    assert allowed("ig_d") == ["1", "il_d", "Pf*ig_q", *grid]
+    assert allowed("ig_q") == ["1", "il_d", "Pf*ig_d", *grid]
+    # the converter-side current (the vendor's control acts there) and the other rows keep everything
+    for state in ("il_d", "il_q", "Pf", "delta", "gamma_d"):
+        assert allowed(state) == terms
+    # without a frequency role no coupling is physics
+    no_frequency = filter_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles(frequency=None))
+    assert [t for t, keep in zip(terms, no_frequency[:, STATE_NAMES.index("ig_d")]) if keep] == ["1", "il_d", *grid]
+    with pytest.raises(ConfigError, match="filter_terms must be physics or any, got 'linear'"):
+        IdentConfig.from_mapping({"filter_terms": "linear"})
+
+
+def test_physics_filter_start_drops_cancelling_terms_and_refits_the_row(plant, train):
+    from pisml_ros.ident.estimators import _integrators_restricted
+
+    terms = physics_library(SignalRoles(), STATE_NAMES, coupling=True)
+    backbone = fit_backbone(train, terms)
+    row, k1, k2 = STATE_NAMES.index("ig_d"), terms.index("Pf*ig_d"), terms.index("Pf*il_d")
+    coef = backbone.coefficients.copy()
+    coef[k1, row] += 500.0  # a pair that cancels at the records' currents (il ≈ ig)
+    coef[k2, row] -= 500.0
+    start = ExplicitModel(backbone.state_names, backbone.input_names, terms, coef)
+    restricted = _integrators_restricted(start, IdentConfig.from_mapping({"filter_terms": "physics"}), train)
+    kept = [t for t, c in zip(terms, restricted.coefficients[:, row]) if c != 0]
+    assert set(kept) <= {"1", "il_d", "il_q", "vc_d", "vc_q", "ig_d", "ig_q", "ug*cos(theta_g - delta)",
+                         "ug*sin(theta_g - delta)", "Pf*ig_q"} and "vc_d" in kept
+    assert restricted.metadata["filter_terms"] == "physics"
+    # the rows outside the filter are the start's
+    others = [j for j, s in enumerate(STATE_NAMES) if s not in ("vc_d", "vc_q", "ig_d", "ig_q")]
+    assert np.array_equal(restricted.coefficients[:, others],
+                          _integrators_restricted(start, IdentConfig(), train).coefficients[:, others])
+    # the row re-fitted on the data explains its derivative; the start with the terms only dropped does not
+    x, u = np.concatenate([tr.x for tr in train]), np.concatenate([tr.u for tr in train])
+    truth = plant.vector_field(x, u)[:, row]
+    dropped = np.where(np.isin(np.array(terms)[:, None], kept) | (np.arange(13) != row)[None, :], coef, 0.0)
+
+    def error(c):
+        model = ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, c)
+        return np.linalg.norm(model.vector_field(x, u)[:, row] - truth) / np.linalg.norm(truth)
+
+    # (the trapezoid quadrature of 20 ms records leaves ~17 % in this LCL row: a start, not a fit)
+    assert error(restricted.coefficients) < 0.25 and error(dropped) > 2 * error(restricted.coefficients)
+
+
 def test_a_fit_is_reproducible(train, small):
     """Same data, same seed: the same models (the network's initial weights come from the seed too)."""
     config = IdentConfig.from_mapping({**FAST, "refine": False})

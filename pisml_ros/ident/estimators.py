@@ -25,7 +25,8 @@ from ..model import ExplicitModel
 from ..model.expressions import term_set
 from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
-from .library import coupling_separation, extended_library, integrator_row_mask, monomial_basis, physics_library
+from .library import (coupling_separation, extended_library, filter_row_mask, integrator_row_mask, monomial_basis,
+                      physics_library)
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
 
@@ -340,7 +341,7 @@ class PISML(_Estimator):
 
             def refine_from(start, progress):
                 errors: dict = {}
-                refined = refine_explicit(_integrators_restricted(candidates[start], cfg), train, smallsignal, cfg,
+                refined = refine_explicit(_integrators_restricted(candidates[start], cfg, train), train, smallsignal, cfg,
                                           progress, start_error=scores[start], errors=errors, scoring=scoring)
                 return refined, errors
 
@@ -479,15 +480,40 @@ def _stability_anchors(train: Dataset, smallsignal: Dataset | None, cfg: IdentCo
     return records + list(train) if cfg.refine_stability_points == "records" else records
 
 
-def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig) -> ExplicitModel:
+def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Dataset | None = None) -> ExplicitModel:
     """``model`` with its integrator equations kept to the terms :func:`~.library.integrator_row_mask`
-    admits (``cfg.integrator_terms == "linear"``), else ``model`` itself."""
-    if cfg.integrator_terms != "linear":
+    admits (``cfg.integrator_terms == "linear"``) and its output filter's equations to those
+    :func:`~.library.filter_row_mask` admits (``cfg.filter_terms == "physics"``); else ``model`` itself."""
+    if cfg.integrator_terms != "linear" and cfg.filter_terms != "physics":
         return model
     signals = list(model.state_names) + list(model.input_names)
-    mask = integrator_row_mask(model.terms, list(model.state_names), signals, cfg.roles)
-    return ExplicitModel(model.state_names, model.input_names, model.terms, np.where(mask, model.coefficients, 0.0),
-                         {**model.metadata, "integrator_terms": "linear"})
+    mask = np.ones(model.coefficients.shape, dtype=bool)
+    meta = dict(model.metadata)
+    if cfg.integrator_terms == "linear":
+        mask &= integrator_row_mask(model.terms, list(model.state_names), signals, cfg.roles)
+        meta["integrator_terms"] = "linear"
+    coef = np.where(mask, model.coefficients, 0.0)
+    if cfg.filter_terms == "physics" and train is not None:
+        from .backbone import noise_moments
+        from .derivatives import integral_form
+        from .noise import estimate_noise_std
+
+        allowed = filter_row_mask(model.terms, list(model.state_names), signals, cfg.roles)
+        rows = [j for j in range(model.n_states) if not allowed[:, j].all()]
+        # the dropped terms nearly cancelled each other at the records' currents: the kept ones,
+        # fitted with them, are no start; re-fitted alone (equation error, the regressor-noise
+        # bias compensated as in the backbone) on the data they are
+        terms = term_set(model.terms, signals)
+        a, b = integral_form(train, terms, span=cfg.backbone_span)
+        noise_aa, noise_ab = noise_moments(train, terms, cfg.backbone_span, estimate_noise_std(train),
+                                           measured=(a, b))
+        for j in rows:
+            cols = np.flatnonzero(allowed[:, j] & mask[:, j])
+            gram = a[:, cols].T @ a[:, cols] - noise_aa[np.ix_(cols, cols)]
+            coef[:, j] = 0.0
+            coef[cols, j] = np.linalg.solve(gram, a[:, cols].T @ b[:, j] - noise_ab[cols, j])
+        meta["filter_terms"] = "physics"
+    return ExplicitModel(model.state_names, model.input_names, model.terms, coef, meta)
 
 
 def _refinement_starts(candidates: dict, scores: dict, points: list, verdicts: dict | None = None) -> list:
