@@ -122,10 +122,11 @@ def _replay_error(model, coef, data):
     return max(np.linalg.norm(a.x - b.x) / np.linalg.norm(b.x) for a, b in zip(pred, data))
 
 
-def test_shooting_normal_equations_match_autodiff(truth):
+@pytest.mark.parametrize("threads", [1, 2])
+def test_shooting_normal_equations_match_autodiff(truth, threads):
     """The forward sensitivities integrated beside the states give the same Gauss-Newton blocks
     as torch's autodiff of the residuals, and the profiled Hessian is the Schur complement of the
-    window start states in the dense JᵀJ."""
+    window start states in the dense JᵀJ; the same with the windows shared out over two threads."""
     import torch
 
     from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
@@ -133,8 +134,9 @@ def test_shooting_normal_equations_match_autodiff(truth):
     model, plant = truth
     data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.01, rng_seed=2)
     small = generate(plant, *schedules_for("smallsignal", n_traj=1, duration=0.008))
-    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
+    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights, threads=threads)
     problem = _ShootingProblem(fitter, start, model.coefficients != 0, data, small, lambda_jac=1.0, ss_stride=5)
+    assert problem.n_windows >= 2 * threads
     theta = torch.tensor(start.ravel()[problem.idx] / problem.scale)
     z = 0.1 * torch.randn((problem.n_windows, 13), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 
@@ -175,6 +177,7 @@ def test_shooting_normal_equations_match_autodiff(truth):
     expected_h = schur / np.outer(problem.scale, problem.scale)
     np.testing.assert_allclose(problem.profiled_hessian(blocks), expected_h, rtol=1e-6,
                                atol=1e-9 * np.abs(expected_h).max())
+    problem.close()
 
 
 def test_refinement_stops_when_told_the_fit_is_not_improving(truth):

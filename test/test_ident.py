@@ -60,6 +60,10 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"refine_stability_points": "everywhere"})
     with pytest.raises(ConfigError, match="refine_stability_weight must be >= 0"):
         IdentConfig.from_mapping({"refine_stability_weight": -1})
+    with pytest.raises(ConfigError, match="refine_starts must be both or fallback, got 'first'"):
+        IdentConfig.from_mapping({"refine_starts": "first"})
+    with pytest.raises(ConfigError, match="refine_stage_prune_budget must be >= 0"):
+        IdentConfig.from_mapping({"refine_stage_prune_budget": -0.1})
     cfg = IdentConfig.from_mapping({"epochs": "7", "hidden": "32,16", "refine": "false",
                                     "refine_prune_budgets": "0.002,0.02"})
     assert cfg.epochs == 7 and cfg.hidden == (32, 16) and cfg.refine is False

@@ -85,6 +85,21 @@ class IdentConfig:
     # recordings 0 / 1 / 2): 53 / 48 / 48 s instead of ~70 s, but recording 0's pruned model was
     # lost and an unstable refined one chosen (1.02 / 1.62 %), 1 and 2 0.24 / 1.17 %, 0.37 / 2.04 %
     refine_growing_substeps: int = 2
+    # between the growing-window stages, the terms whose removal the last stage's quadratic cost
+    # model says raises its cost by at most this fraction are dropped (backward elimination, as the
+    # prune budgets); 0: every stage keeps the start's support
+    refine_stage_prune_budget: float = 0.0
+    # the two refinement starts on noisy data (the best merged / re-fitted model, the noise-compensated
+    # backbone): "both" refines them side by side (a thread each); "fallback" refines the first on
+    # every thread (the shooting windows shared out) and the second only where the selection over
+    # the first's family does not take one of its models, or takes one inconsistent with a point
+    # where the records sat at rest. Measured (stop 22, 40 dB, 2 cores, benchmark recordings 0-4):
+    # the same explicit models as "both" (the first start's family won all five), 50-60 s instead
+    # of 85-91 s; on the demo recording the first family fails and both run (as with "both")
+    refine_starts: str = "fallback"
+    # a stage of the noisy-data refinement (growing windows, polish) ends early when an accepted step
+    # lowers its cost by at most this fraction
+    refine_stage_tolerance: float = 1e-8
     refine_polish_windows: tuple = (50, 100)
     refine_polish_evaluations: tuple = (8, 6)
     # the controller integrators' equations in the refinement: "linear" keeps them to the constant
@@ -220,7 +235,7 @@ class IdentConfig:
         for key in ["backbone_threshold", "backbone_alpha", "coupling_min_separation", "dropout", "lambda_pert", "lambda_sparse",
                     "distill_threshold", "distill_spread", "refine_max_nfev", "selection_tolerance", "selection_unstable_rate",
                     "refine_stability_weight", "refine_stability_margin", "refine_equilibrium_weight",
-                    "refine_growing_stability_weight"]:
+                    "refine_growing_stability_weight", "refine_stage_prune_budget", "refine_stage_tolerance"]:
             if getattr(self, key) < 0:
                 raise ConfigError(f"identification config: {key} must be >= 0, got {getattr(self, key)}")
         if not re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.device):
@@ -241,6 +256,8 @@ class IdentConfig:
         if self.integrator_terms not in ("linear", "any"):
             raise ConfigError(f"identification config: integrator_terms must be linear or any, "
                               f"got {self.integrator_terms!r}")
+        if self.refine_starts not in ("both", "fallback"):
+            raise ConfigError(f"identification config: refine_starts must be both or fallback, got {self.refine_starts!r}")
         if self.filter_terms not in ("physics", "any"):
             raise ConfigError(f"identification config: filter_terms must be physics or any, got {self.filter_terms!r}")
         if self.refine_stability_points not in ("records", "smallsignal"):

@@ -27,6 +27,7 @@ from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
 from .library import (coupling_separation, extended_library, filter_row_mask, integrator_row_mask, monomial_basis,
                       physics_library)
+from .trajfit import blas_threads
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
 
@@ -345,15 +346,35 @@ class PISML(_Estimator):
                                           progress, start_error=scores[start], errors=errors, scoring=scoring)
                 return refined, errors
 
-            outcomes = _side_by_side(refine_from, starts, lambda fraction, losses: self._emit(
-                "refinement", 0.7 + 0.28 * fraction, losses=losses))
-            for k, (start, (refined, errors)) in enumerate(zip(starts, outcomes)):
-                suffix = "" if k == 0 else f" from {start}"
+            def add(k, refined, errors):
+                suffix = "" if k == 0 else f" from {starts[k]}"
                 for name, model in refined.items():
-                    model.metadata["refinement"]["start"] = start
+                    model.metadata["refinement"]["start"] = starts[k]
                     candidates[name + suffix] = model
                 scores.update({name + suffix: error for name, error in errors.items()})
-            self.metrics_["refinement_threads"] = float(_threads_for(len(starts)))
+                scores.update({name + suffix: training_error(model, scoring) for name, model in refined.items()
+                               if name + suffix not in scores})
+
+            # the windows of one start are shared out over the threads only where its terms are
+            # products of factors (TrajectoryFitter): else the two starts side by side are quicker
+            shared = term_set(candidates[starts[0]].terms, signals).is_product_form()
+            if cfg.refine_starts == "both" or len(starts) == 1 or not shared:
+                outcomes = _side_by_side(refine_from, starts, lambda fraction, losses: self._emit(
+                    "refinement", 0.7 + 0.28 * fraction, losses=losses))
+                for k, outcome in enumerate(outcomes):
+                    add(k, *outcome)
+                self.metrics_["refinement_threads"] = float(_threads_for(len(starts)))
+            else:
+                # the first start alone on every thread; the second only where the first's family
+                # does not give a model consistent with the records' rest points (IdentConfig.refine_starts)
+                add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
+                    "refinement", 0.7 + 0.28 * 0.5 * fraction, losses=losses)))
+                needed = not _refinement_suffices(explicit, candidates, scores, cfg, verdicts)
+                explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": needed}
+                if needed:
+                    add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
+                        "refinement", 0.84 + 0.14 * fraction, losses=losses)))
+                self.metrics_["refinement_starts_run"] = float(sum(name.startswith("refined") for name in candidates))
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the records when run freely
         # from their rest states or first samples (refinement that made things worse is dropped), or
@@ -372,6 +393,18 @@ class PISML(_Estimator):
         self.metrics_["hybrid_parameters"] = float(hybrid.n_parameters)
         self._emit("explicit", 1.0, model=explicit)
         return self._finish(explicit, explicit)
+
+
+def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
+                         verdicts: dict) -> bool:
+    """Whether the first refinement start's family already gives the explicit model: the selection
+    over the candidates so far takes one of its models, and that model is consistent with every
+    operating point where the records sat at rest (an equilibrium there, no mode growing faster than
+    ``cfg.selection_unstable_rate``)."""
+    chosen = _selected(template, candidates, scores, tolerance=cfg.selection_tolerance, verdicts=verdicts,
+                       unstable_rate=cfg.selection_unstable_rate).metadata["selection"]
+    name = chosen["chosen"]
+    return _refinement_family(name) == "" and chosen["inconsistent_rest_points"][name] == 0
 
 
 def _threads_for(jobs: int) -> int:
@@ -448,20 +481,6 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
 
 class _StoppedBeside(Exception):
     """Raised in a job of :func:`_side_by_side` when another job failed or the run was cancelled."""
-
-
-def blas_threads(limit: int | None):
-    """A context with at most ``limit`` threads in the BLAS pools (threadpoolctl; without it, or
-    with ``limit`` None, the pools keep their size)."""
-    import contextlib
-
-    if not limit:
-        return contextlib.nullcontext()
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=limit)
 
 
 def _refinement_family(name: str) -> str | None:
@@ -689,9 +708,14 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     spread = np.concatenate([tr.x for tr in train]).std(axis=0)
     weights = 1.0 / np.maximum(noise, 1e-4 * spread + 1e-12)
 
+    import torch
+
+    # the windows shared out over torch's threads (one where the caller runs fits side by side)
+    threads = torch.get_num_threads()
+
     def make_fitter(window, max_windows, substeps=2):
         return TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=window,
-                                substeps=substeps, weights=weights, max_windows=max_windows)
+                                substeps=substeps, weights=weights, max_windows=max_windows, threads=threads)
 
     errors = {} if errors is None else errors
     if cfg.refine_growing_windows and _noisy(train):
@@ -771,9 +795,14 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     done, used = [0], [0]  # evaluations budgeted (progress) and spent
     lambda_jac = 1.0 if smallsignal is not None else 0.0
 
-    def run(coef, schedule, lambda_stab=0.0, substeps=2):
+    def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0):
         result = None
-        for window, evaluations in schedule:
+        for stage, (window, evaluations) in enumerate(schedule):
+            if stage and stage_budget > 0 and result is not None and result.hessian is not None:
+                # the terms the last stage's fit can spare go before the longer (costlier) windows
+                coef = backward_elimination(result.coefficients, result.hessian, result.support,
+                                            [stage_budget * result.cost])[0][1]
+                pruned_between.append(int(np.count_nonzero(coef)))
             fitter = make_fitter(window, None, substeps)
             offset = done[0]
 
@@ -787,7 +816,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                                     on_evaluation=on_evaluation, fit_starts_first=True,
                                     lambda_stab=lambda_stab, stability_margin=cfg.refine_stability_margin,
                                     stability_records=_stability_anchors(train, smallsignal, cfg),
-                                    lambda_eq=cfg.refine_equilibrium_weight)
+                                    lambda_eq=cfg.refine_equilibrium_weight, ftol=cfg.refine_stage_tolerance)
             except ValueError as err:  # no trajectory as long as the window: stop growing
                 model.metadata.setdefault("refinement_notes", []).append(f"window {window}: {err}")
                 break
@@ -798,15 +827,17 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
 
     meta = dict(model.metadata)
     started = time.monotonic()
+    pruned_between: list = []  # support sizes after each between-stage pruning
     try:
         result = run(model.coefficients.copy(), stages, cfg.refine_growing_stability_weight,
-                     substeps=cfg.refine_growing_substeps)
+                     substeps=cfg.refine_growing_substeps, stage_budget=cfg.refine_stage_prune_budget)
     except (np.linalg.LinAlgError, FloatingPointError) as err:
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
         return {}
     if result is None:
         return {}
-    schedule = {"windows": [w for w, _ in stages], "evaluations": [n for _, n in stages]}
+    schedule = {"windows": [w for w, _ in stages], "evaluations": [n for _, n in stages],
+                "pruned_between": pruned_between}
     meta["refinement"] = {"cost": result.cost, "nfev": used[0], "seconds": time.monotonic() - started,
                           "abandoned": False, "growing_windows": schedule}
     out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients, meta)}

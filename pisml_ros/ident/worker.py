@@ -20,7 +20,8 @@ import threading
 from typing import Iterator
 
 from ..model import ExplicitModel
-from .estimators import StageUpdate, blas_threads
+from .estimators import StageUpdate
+from .trajfit import blas_threads
 
 
 @dataclasses.dataclass

@@ -168,6 +168,12 @@ class TermSet:
                                                                      device=z.device)
                             for c in cols], dim=-1)
 
+    def is_product_form(self) -> bool:
+        """Whether every term is a product of factors with positive integer powers: the torch
+        gradients are then plain tensor operations (else forward-mode autodiff, whose levels
+        belong to one thread)."""
+        return self._torch_plan()
+
     def _torch_plan(self) -> bool:
         """Compile the product plan for torch once (factor functions, index); False when the terms
         are not all products of factors."""
