@@ -536,6 +536,27 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     assert _selected(candidates["refined"], candidates, scores, tolerance=0.5).metadata["selection"]["chosen"] == "backbone"
 
 
+def test_second_refinement_start_runs_only_where_the_first_family_fails():
+    """refine_starts=fallback: the noise-compensated backbone's refinement is needed where the
+    selection over the first start's family takes another candidate, or one of the family that is
+    inconsistent with a point where the records sat at rest."""
+    from pisml_ros.ident.estimators import _refinement_suffices
+
+    template = ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.zeros((3, 1)),
+                             {"reference_points": [{"inputs": [0.0], "state": [1.0]}]})
+    stable = ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[1.0], [-1.0], [0.01]]), {})  # x* = 1, -1 1/s
+    growing = ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[-5.0], [5.0], [0.01]]), {})  # +5 1/s
+    cfg = IdentConfig()
+    candidates = {"distilled": stable, "refined": stable, "pruned +0.1 %": stable}
+    scores = {"distilled": 1.0, "refined": 0.03, "pruned +0.1 %": 0.035}
+    assert _refinement_suffices(template, candidates, scores, cfg, {})
+    # the family lost to a candidate before the refinement
+    assert not _refinement_suffices(template, candidates, dict(scores, distilled=0.01), cfg, {})
+    # the family won, but only with models growing at the rest point (+5 1/s > selection_unstable_rate)
+    bad = {"distilled": growing, "refined": growing, "pruned +0.1 %": growing}
+    assert not _refinement_suffices(template, bad, scores, cfg, {})
+
+
 def test_integrator_equations_keep_the_constant_and_plain_signals_only():
     from pisml_ros.ident.library import integrator_row_mask
 
