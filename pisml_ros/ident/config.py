@@ -121,7 +121,9 @@ class IdentConfig:
     # the default. Known weakness: the start's re-fit uses trapezoid quadrature (noise moments are
     # computed so), ~17 % off in an LCL row on clean 20 ms records; plain zeroing of the dropped
     # terms (no re-fit) gave 1.26 / 3.45 % on recording 0, and a re-fit over every plain signal
-    # diverged on recording 2
+    # diverged on recording 2. Stop 22 (fallback refinement), recordings 0-4: 0.20 / 0.83 (93),
+    # 1.27 / 1.09 (90), 1.50 / 1.15 (87), 0.38 / 1.69 (116), 0.30 / 1.28 (102); ug 0.2 without an
+    # equilibrium on 0 and 3, a spurious unstable mode there on 2
     filter_terms: str = "any"
     # stability prior of the refinement (the one-stage refinement, and the polish of the pruned model
     # on noisy data): at operating points where the plant sat at rest (refine_stability_points)
