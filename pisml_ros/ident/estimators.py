@@ -355,9 +355,10 @@ class PISML(_Estimator):
                 scores.update({name + suffix: training_error(model, scoring) for name, model in refined.items()
                                if name + suffix not in scores})
 
-            # the windows of one start are shared out over the threads only where its terms are
-            # products of factors (TrajectoryFitter): else the two starts side by side are quicker
-            shared = term_set(candidates[starts[0]].terms, signals).is_product_form()
+            # the windows of one start are shared out over the threads only where its terms'
+            # gradients are thread-safe (TermSet.thread_safe_gradient): else the two starts side by
+            # side are quicker
+            shared = term_set(candidates[starts[0]].terms, signals).thread_safe_gradient()
             if cfg.refine_starts == "both" or len(starts) == 1 or not shared:
                 outcomes = _side_by_side(refine_from, starts, lambda fraction, losses: self._emit(
                     "refinement", 0.7 + 0.28 * fraction, losses=losses))

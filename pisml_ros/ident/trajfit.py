@@ -248,8 +248,8 @@ class _ShootingProblem:
         self.X = torch.tensor(xw)
         self.U = torch.tensor(uw)
         self.n_windows = self.X.shape[0]
-        # torch.func's forward-mode autodiff (terms not in product form) must stay on one thread
-        self.threads = fitter.threads if fitter.terms.is_product_form() else 1
+        # torch.func's forward-mode autodiff (TermSet.thread_safe_gradient) must stay on one thread
+        self.threads = fitter.threads if fitter.terms.thread_safe_gradient() else 1
         self._pool = None
         self.shape = coef0.shape
         self.idx = np.flatnonzero(mask.ravel())
