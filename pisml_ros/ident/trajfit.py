@@ -148,23 +148,17 @@ class TrajectoryFitter:
             # a part per thread: torch inside each on one thread, and the BLAS (the Hessian's syrk)
             # too; OpenBLAS threads spinning beside torch's doubled the time (measured)
             torch.set_num_threads(1)
+        problem = None
         try:
             with blas_threads(1 if self.threads > 1 else None):
-                return self._fit(torch, coef0, mask, train, smallsignal, lambda_jac, max_nfev, ss_stride,
-                                 on_evaluation, keep_going, fit_starts_first, lambda_stab, stability_margin,
-                                 stability_records, lambda_eq, ftol)
+                problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
+                                           lambda_stab, stability_margin, stability_records, lambda_eq)
+                return self._solve(torch, problem, coef0, max_nfev, on_evaluation, keep_going, fit_starts_first,
+                                   ftol)
         finally:
+            if problem is not None:
+                problem.close()
             torch.set_num_threads(threads)
-
-    def _fit(self, torch, coef0, mask, train, smallsignal, lambda_jac, max_nfev, ss_stride, on_evaluation,
-             keep_going, fit_starts_first, lambda_stab, stability_margin, stability_records, lambda_eq,
-             ftol) -> FitResult:
-        problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
-                                   lambda_stab, stability_margin, stability_records, lambda_eq)
-        try:
-            return self._solve(torch, problem, coef0, max_nfev, on_evaluation, keep_going, fit_starts_first, ftol)
-        finally:
-            problem.close()
 
     def _solve(self, torch, problem, coef0, max_nfev, on_evaluation, keep_going, fit_starts_first,
                ftol) -> FitResult:
