@@ -165,9 +165,7 @@ class TermSet:
         if self._torch is None:
             self._torch = sympy.lambdify(self._symbols, self.exprs, modules=[_torch_module(), "math"], cse=True)
         cols = self._torch(*z.unbind(-1))
-        return torch.stack([c if torch.is_tensor(c) else torch.full(z.shape[:-1], float(c), dtype=z.dtype,
-                                                                     device=z.device)
-                            for c in cols], dim=-1)
+        return torch.stack([_column(c, z) for c in cols], dim=-1)
 
     def thread_safe_gradient(self) -> bool:
         """Whether :meth:`gradient_torch` is plain tensor operations (the product rule, or the terms'
@@ -219,8 +217,7 @@ class TermSet:
             self._plan = (fn, index.to(z.device))
         cols = [torch.ones(z.shape[:-1], dtype=z.dtype, device=z.device)]
         if fn is not None:
-            cols += [v if torch.is_tensor(v) else torch.full(z.shape[:-1], float(v), dtype=z.dtype, device=z.device)
-                     for v in fn(*z.unbind(-1))]
+            cols += [_column(v, z) for v in fn(*z.unbind(-1))]
         return torch.stack(cols, dim=-1)
 
     def values_and_gradient_torch(self, z):
@@ -294,14 +291,22 @@ class TermSet:
                          for row in rows], axis=-2)
 
 
+def _column(value, z):
+    """A compiled expression's value at rows ``z`` (..., n_signals) as a tensor of shape z.shape[:-1]:
+    a constant (a plain number from the generated code) filled out."""
+    import torch
+
+    if torch.is_tensor(value):
+        return value
+    return torch.full(z.shape[:-1], float(value), dtype=z.dtype, device=z.device)
+
+
 def _stacked_rows(rows, z):
     """Nested lists (terms × signals) of tensors and numbers at ``z`` -> (..., n_terms, n_signals)."""
     import torch
 
     shape = z.shape[:-1]
-    return torch.stack([torch.stack([c.expand(shape) if torch.is_tensor(c) else
-                                     torch.full(shape, float(c), dtype=z.dtype, device=z.device) for c in row], dim=-1)
-                        for row in rows], dim=-2)
+    return torch.stack([torch.stack([_column(c, z).expand(shape) for c in row], dim=-1) for row in rows], dim=-2)
 
 
 @lru_cache(maxsize=64)
