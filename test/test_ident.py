@@ -48,6 +48,8 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"epoch": 3})
     with pytest.raises(ConfigError, match="epochs must be > 0"):
         IdentConfig.from_mapping({"epochs": 0})
+    with pytest.raises(ConfigError, match="refine_prune_rounds must be > 0, got 0"):
+        IdentConfig.from_mapping({"refine_prune_rounds": 0})
     with pytest.raises(ConfigError, match="dropout = 'x'"):
         IdentConfig.from_mapping({"dropout": "x"})
     with pytest.raises(ConfigError, match="device must be cpu, auto or cuda.*'gpu'"):
@@ -413,6 +415,15 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     assert np.all(pruned.coefficients[3] == 0) and np.all(pruned.coefficients[:3][truth != 0] != 0)
     np.testing.assert_allclose(pruned.coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
     assert progress and progress[-1] == pytest.approx(1.0) and all(np.diff(progress) >= 0)
+    # prune-and-polish rounds: the first drops both spurious terms; a second would drop nothing more,
+    # so it adds no candidate (another polish of the same support)
+    spurious = ExplicitModel(("xa", "xb"), ("v",), ["xa", "xb", "v", "xa*xb", "xb*v"],
+                             np.vstack([start, [[-20.0, 20.0]]]))
+    rounds = refine_explicit(spurious, train, small, IdentConfig.from_mapping({**cfg.to_dict(), "refine_prune_rounds": 3}))
+    assert set(rounds) == {"refined", "pruned +1 %"}
+    assert rounds["pruned +1 %"].metadata["pruning"]["round"] == 1
+    assert np.all(rounds["pruned +1 %"].coefficients[3:] == 0)
+    np.testing.assert_allclose(rounds["pruned +1 %"].coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
     # empty growing windows: the one-stage refinement (with its pruned candidates), as on clean data
     one_stage = refine_explicit(model, train, small, IdentConfig.from_mapping(
         {"refine_growing_windows": "", "refine_prune_budgets": "0.01", "refine_window": 50, "refine_max_nfev": 3}))
@@ -531,6 +542,15 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     family_scores["pruned +0.3 % from noise-compensated backbone"] = 0.04
     assert _selected(candidates["refined"], family, family_scores, tolerance=0.5).metadata["selection"]["chosen"] \
         == "pruned +0.3 % from noise-compensated backbone"
+    # a later prune round ("… xR") belongs to the family of its start
+    from pisml_ros.ident.estimators import _refinement_family
+
+    assert _refinement_family("pruned +0.3 % x2") == "" and \
+        _refinement_family("pruned +0.3 % x3 from noise-compensated backbone") == " from noise-compensated backbone"
+    family["pruned +0.3 % x2 from noise-compensated backbone"] = model(1)
+    family_scores["pruned +0.3 % x2 from noise-compensated backbone"] = 0.044
+    assert _selected(candidates["refined"], family, family_scores, tolerance=0.5).metadata["selection"]["chosen"] \
+        == "pruned +0.3 % x2 from noise-compensated backbone"
     # where another candidate wins, pruned models do not come back through the tolerance
     scores["backbone"] = 0.02
     assert _selected(candidates["refined"], candidates, scores, tolerance=0.5).metadata["selection"]["chosen"] == "backbone"

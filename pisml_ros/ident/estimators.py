@@ -13,6 +13,7 @@ estimator; learned attributes end in ``_``:
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
 from typing import Callable
 
@@ -490,7 +491,8 @@ def _refinement_family(name: str) -> str | None:
     if name.startswith("refined"):
         return name[len("refined"):]
     if name.startswith("pruned +"):
-        return name[name.index("%") + 1:]
+        # "pruned +B %", "pruned +B % xR" (R-th prune round), then the start's suffix
+        return re.sub(r"^ x\d+", "", name[name.index("%") + 1:])
     return None
 
 
@@ -775,7 +777,8 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
 def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig,
                     make_fitter, progress=None) -> dict:
     """The noisy-data refinement: stages of growing windows over all the data, then the model pruned
-    at the first of ``cfg.refine_prune_budgets`` re-fitted in stages of its own.
+    at the first of ``cfg.refine_prune_budgets`` re-fitted in stages of its own, and pruned and
+    re-fitted again for ``cfg.refine_prune_rounds`` rounds in all (one candidate per round).
 
     From a far-off start on noisy data, short windows keep the fit near the data (every window
     starts at fitted states) while the coefficients move a long way; longer windows then
@@ -786,13 +789,13 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     Returns
     -------
     dict
-        ``{"refined": model, "pruned +B %": model}`` (the caller selects).
+        ``{"refined": model, "pruned +B %": model, "pruned +B % x2": model, ...}`` (the caller selects).
     """
     from .trajfit import backward_elimination
 
     stages = list(zip(cfg.refine_growing_windows, cfg.refine_growing_evaluations))
     polish = list(zip(cfg.refine_polish_windows, cfg.refine_polish_evaluations))
-    total = sum(n for _, n in stages + polish)
+    total = sum(n for _, n in stages + polish) + (cfg.refine_prune_rounds - 1) * sum(n for _, n in polish[-1:])
     done, used = [0], [0]  # evaluations budgeted (progress) and spent
     lambda_jac = 1.0 if smallsignal is not None else 0.0
 
@@ -845,17 +848,30 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     if not cfg.refine_prune_budgets or result.hessian is None:
         return out
     budget = cfg.refine_prune_budgets[0]
-    rise, coef = backward_elimination(result.coefficients, result.hessian, result.support, [budget * result.cost])[0]
-    try:
-        polished = run(coef, polish, cfg.refine_stability_weight) if polish else None
-    except (np.linalg.LinAlgError, FloatingPointError) as err:
-        model.metadata.setdefault("refinement_errors", []).append(f"polish: {type(err).__name__}: {err}")
-        polished = None
-    pruning = {"budget": budget, "predicted_cost_rise": rise / max(result.cost, 1e-300),
-               "polish_windows": [w for w, _ in polish], "polish_cost": None if polished is None else polished.cost}
-    out[f"pruned +{100 * budget:g} %"] = ExplicitModel(
-        model.state_names, model.input_names, model.terms, coef if polished is None else polished.coefficients,
-        {**meta, "pruning": pruning})
+    polished = result
+    for round_ in range(1, cfg.refine_prune_rounds + 1):
+        # each round prunes the last round's polished model (its quadratic cost model is taken at a
+        # minimum of its own support, unlike the first round's)
+        if polished is None or polished.hessian is None:
+            break
+        base = polished
+        rise, coef = backward_elimination(base.coefficients, base.hessian, base.support, [budget * base.cost])[0]
+        if round_ > 1 and np.count_nonzero(coef) == np.count_nonzero(base.coefficients):
+            break  # nothing more to drop: another polish would re-fit the same support
+        polish_started, polish_used = time.monotonic(), used[0]
+        try:
+            # a later round starts next to a minimum of a wider support: the longest windows suffice
+            schedule = polish if round_ == 1 else polish[-1:]
+            polished = run(coef, schedule, cfg.refine_stability_weight) if polish else None
+        except (np.linalg.LinAlgError, FloatingPointError) as err:
+            model.metadata.setdefault("refinement_errors", []).append(f"polish: {type(err).__name__}: {err}")
+            polished = None
+        pruning = {"budget": budget, "round": round_, "predicted_cost_rise": rise / max(base.cost, 1e-300),
+                   "polish_windows": [w for w, _ in schedule], "polish_cost": None if polished is None else polished.cost,
+                   "polish_evaluations": used[0] - polish_used, "polish_seconds": time.monotonic() - polish_started}
+        name = f"pruned +{100 * budget:g} %" + ("" if round_ == 1 else f" x{round_}")
+        out[name] = ExplicitModel(model.state_names, model.input_names, model.terms,
+                                  coef if polished is None else polished.coefficients, {**meta, "pruning": pruning})
     if progress:  # stages that converged early leave evaluations of their budget unused
         progress(1.0, {"refine_cost": result.cost if polished is None else polished.cost})
     return out
