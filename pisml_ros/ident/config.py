@@ -113,7 +113,10 @@ class IdentConfig:
     # 0.68 / 0.58 (81), 0.65 / 0.41 (102), 0.57 / 0.32 (117), 0.32 / 1.95 (164); 2 rounds: 0.29 / 0.77
     # (99), 0.58 / 0.61 (91), 0.40 / 0.69 (117), 1.20 / 1.07 (131); 4 rounds: 0.20 / 0.46 (72),
     # 0.81 / 0.78 (73), 0.61 / 0.39 (84), 0.52 / 0.87 (107). Fewer growing-stage evaluations (12, 8, 8)
-    # to pay for it: 1.14 / 2.82, 1.24 / 5.21, 0.92 / 0.76
+    # to pay for it: 1.14 / 2.82, 1.24 / 5.21, 0.92 / 0.76. Later rounds at windows of 50 (8
+    # evaluations) instead of 100: 0.26 / 0.28, 0.76 / 0.55, 0.58 / 0.38, 0.72 / 0.99, 0.58 / 1.87;
+    # later rounds at +0.05 % (4 rounds): 0.25 / 0.34, 0.62 / 0.67, 0.68 / 0.54, 0.88 / 0.74; at
+    # +0.2 % (2 rounds): 0.43 / 0.35, 0.91 / 0.46, 0.62 / 0.45, 0.87 / 0.71
     refine_prune_rounds: int = 3
     refine_polish_windows: tuple = (50, 100)
     refine_polish_evaluations: tuple = (8, 6)
