@@ -248,7 +248,8 @@ class IdentConfig:
 
     def check(self) -> None:
         positive = ["backbone_span", "epochs", "window", "batch_windows", "substeps", "distill_samples", "distill_max_terms",
-                    "refine_window", "refine_max_windows", "learning_rate", "refit_span", "refine_growing_substeps", "refine_prune_rounds"]
+                    "refine_window", "refine_max_windows", "learning_rate", "refit_span", "refine_growing_substeps",
+                    "refine_prune_rounds"]
         for key in positive:
             if getattr(self, key) <= 0:
                 raise ConfigError(f"identification config: {key} must be > 0, got {getattr(self, key)}")

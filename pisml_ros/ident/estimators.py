@@ -381,7 +381,8 @@ class PISML(_Estimator):
         # 5. the explicit model is the candidate that best reproduces the records when run freely
         # from their rest states or first samples (refinement that made things worse is dropped), or
         # the sparsest pruned refinement nearly as good
-        scores.update(training_errors({name: model for name, model in candidates.items() if name not in scores}, scoring))
+        unscored = {name: model for name, model in candidates.items() if name not in scores}
+        scores.update(training_errors(unscored, scoring))
         self.candidates_ = candidates
         explicit = _selected(explicit, candidates, scores, tolerance=cfg.selection_tolerance, verdicts=verdicts,
                              unstable_rate=cfg.selection_unstable_rate)
@@ -912,7 +913,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
             model.metadata.setdefault("refinement_errors", []).append(f"polish: {type(err).__name__}: {err}")
             polished = None
         pruning = {"budget": budget, "round": round_, "predicted_cost_rise": rise / max(base.cost, 1e-300),
-                   "polish_windows": [w for w, _ in schedule], "polish_cost": None if polished is None else polished.cost,
+                   "polish_windows": [w for w, _ in schedule],
+                   "polish_cost": None if polished is None else polished.cost,
                    "polish_evaluations": used[0] - polish_used, "polish_seconds": time.monotonic() - polish_started}
         name = f"pruned +{100 * budget:g} %" + ("" if round_ == 1 else f" x{round_}")
         out[name] = ExplicitModel(model.state_names, model.input_names, model.terms,
