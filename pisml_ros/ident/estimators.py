@@ -353,8 +353,8 @@ class PISML(_Estimator):
                     model.metadata["refinement"]["start"] = starts[k]
                     candidates[name + suffix] = model
                 scores.update({name + suffix: error for name, error in errors.items()})
-                scores.update({name + suffix: error for name, error in training_errors(
-                    {name: model for name, model in refined.items() if name + suffix not in scores}, scoring).items()})
+                unscored = {name: model for name, model in refined.items() if name + suffix not in scores}
+                scores.update({name + suffix: error for name, error in training_errors(unscored, scoring).items()})
 
             # the windows of one start are shared out over the threads only where its terms'
             # gradients are thread-safe (TermSet.thread_safe_gradient): else the two starts side by
@@ -841,7 +841,9 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
 
     stages = list(zip(cfg.refine_growing_windows, cfg.refine_growing_evaluations))
     polish = list(zip(cfg.refine_polish_windows, cfg.refine_polish_evaluations))
-    total = sum(n for _, n in stages + polish) + (cfg.refine_prune_rounds - 1) * sum(n for _, n in polish[-1:])
+    # a later prune round starts next to a minimum of a wider support: the longest windows suffice
+    repolish = polish[-1:]
+    total = sum(n for _, n in stages + polish) + (cfg.refine_prune_rounds - 1) * sum(n for _, n in repolish)
     done, used = [0], [0]  # evaluations budgeted (progress) and spent
     lambda_jac = 1.0 if smallsignal is not None else 0.0
 
@@ -905,10 +907,9 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         if round_ > 1 and np.count_nonzero(coef) == np.count_nonzero(base.coefficients):
             break  # nothing more to drop: another polish would re-fit the same support
         polish_started, polish_used = time.monotonic(), used[0]
+        schedule = polish if round_ == 1 else repolish
         try:
-            # a later round starts next to a minimum of a wider support: the longest windows suffice
-            schedule = polish if round_ == 1 else polish[-1:]
-            polished = run(coef, schedule, cfg.refine_stability_weight) if polish else None
+            polished = run(coef, schedule, cfg.refine_stability_weight) if schedule else None
         except (np.linalg.LinAlgError, FloatingPointError) as err:
             model.metadata.setdefault("refinement_errors", []).append(f"polish: {type(err).__name__}: {err}")
             polished = None
