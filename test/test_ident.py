@@ -50,6 +50,8 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"epochs": 0})
     with pytest.raises(ConfigError, match="refine_prune_rounds must be > 0, got 0"):
         IdentConfig.from_mapping({"refine_prune_rounds": 0})
+    with pytest.raises(ConfigError, match="refine_prune_degree_preference must be >= 1, got 0.5"):
+        IdentConfig.from_mapping({"refine_prune_degree_preference": 0.5})
     with pytest.raises(ConfigError, match="dropout = 'x'"):
         IdentConfig.from_mapping({"dropout": "x"})
     with pytest.raises(ConfigError, match="device must be cpu, auto or cuda.*'gpu'"):
@@ -163,6 +165,37 @@ def test_backward_elimination_drops_collinear_spurious_terms():
     np.testing.assert_allclose(coef[[0, 2, 5], 0], refit, rtol=1e-8)
     np.testing.assert_allclose(rise, 0.5 * np.sum((a[:, [0, 2, 5]] @ refit - y) ** 2) - cost, rtol=1e-6)
     assert np.count_nonzero(large[1]) < 3
+
+
+def test_order_weights_choose_which_of_two_stand_ins_goes_and_the_budget_counts_true_rises():
+    # a1 is a near copy of a0 that the data favour a little (y leans on a1): by cost alone a0 goes;
+    # with a1 weighted as the higher-degree term (rises ranked at 1/10), a1 goes and a0 carries y
+    rng = np.random.default_rng(7)
+    x = rng.standard_normal(500)
+    a = np.column_stack([x, x + 0.02 * rng.standard_normal(500), rng.standard_normal(500)])
+    y = a @ np.array([1.0, 1.5, 1.0]) + 1e-3 * rng.standard_normal(500)
+    full = np.linalg.lstsq(a, y, rcond=None)[0][:, None]
+    cost = 0.5 * np.sum((a @ full[:, 0] - y) ** 2)
+    rise_a0 = 0.5 * np.sum((a[:, 1:] @ np.linalg.lstsq(a[:, 1:], y, rcond=None)[0] - y) ** 2) - cost
+    rise_a1 = 0.5 * np.sum((a[:, [0, 2]] @ np.linalg.lstsq(a[:, [0, 2]], y, rcond=None)[0] - y) ** 2) - cost
+    assert rise_a0 < rise_a1 < 5 * rise_a0
+    budget = 1.01 * rise_a1  # room for one removal, not for two
+    (_, plain), = backward_elimination(full, a.T @ a, np.arange(3), [budget])
+    (rise, weighted), = backward_elimination(full, a.T @ a, np.arange(3), [budget], order_weights=np.array([1, 0.1, 1]))
+    assert np.flatnonzero(plain[:, 0]).tolist() == [1, 2]
+    assert np.flatnonzero(weighted[:, 0]).tolist() == [0, 2]
+    assert rise == pytest.approx(rise_a1, rel=1e-6)
+    # a weight that makes a removal look cheap does not stretch the budget
+    (_, tight), = backward_elimination(full, a.T @ a, np.arange(3), [0.99 * rise_a1], order_weights=np.array([1, 0.1, 1]))
+    assert np.flatnonzero(tight[:, 0]).tolist() == [0, 1, 2]
+
+
+def test_term_degrees_count_factors():
+    from pisml_ros.ident.library import term_degrees
+
+    terms = ["1", "il_d", "cos(delta)", "Pf*il_d", "vc_d**2", "ug*cos(delta - theta_g)", "il_d/(1 + il_d**2)",
+             "ig_d*il_d*vc_q"]
+    assert term_degrees(terms, STATE_NAMES + INPUT_NAMES).tolist() == [1, 1, 1, 2, 2, 2, 2, 3]
 
 
 def test_couplings_are_kept_only_where_the_data_separate_them(plant, train):
@@ -441,6 +474,11 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     assert rounds["pruned +1 %"].metadata["pruning"]["round"] == 1
     assert np.all(rounds["pruned +1 %"].coefficients[3:] == 0)
     np.testing.assert_allclose(rounds["pruned +1 %"].coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
+    # ranked by degree (the products go first) the rounds come to the same support here
+    ranked = refine_explicit(spurious, train, small, IdentConfig.from_mapping(
+        {**cfg.to_dict(), "refine_prune_rounds": 3, "refine_prune_degree_preference": 10}))
+    assert set(ranked) == {"refined", "pruned +1 %"}
+    assert (ranked["pruned +1 %"].coefficients != 0).tolist() == (rounds["pruned +1 %"].coefficients != 0).tolist()
     # empty growing windows: the one-stage refinement (with its pruned candidates), as on clean data
     one_stage = refine_explicit(model, train, small, IdentConfig.from_mapping(
         {"refine_growing_windows": "", "refine_prune_budgets": "0.01", "refine_window": 50, "refine_max_nfev": 3}))

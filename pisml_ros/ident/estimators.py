@@ -27,7 +27,7 @@ from ..model.expressions import term_set
 from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
 from .library import (coupling_separation, extended_library, filter_row_mask, integrator_row_mask, monomial_basis,
-                      physics_library)
+                      physics_library, term_degrees)
 from .trajfit import blas_threads
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
@@ -846,6 +846,10 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     total = sum(n for _, n in stages + polish) + (cfg.refine_prune_rounds - 1) * sum(n for _, n in repolish)
     done, used = [0], [0]  # evaluations budgeted (progress) and spent
     lambda_jac = 1.0 if smallsignal is not None else 0.0
+    # with a degree preference above 1 the rounds drop higher-degree terms ahead of lower-degree
+    # ones that cost as little to lose (IdentConfig.refine_prune_degree_preference)
+    degrees = term_degrees(model.terms, tuple(model.state_names) + tuple(model.input_names))
+    order_weights = cfg.refine_prune_degree_preference ** -(degrees - 1.0)
 
     def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0):
         result = None
@@ -903,7 +907,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         if polished is None or polished.hessian is None:
             break
         base = polished
-        rise, coef = backward_elimination(base.coefficients, base.hessian, base.support, [budget * base.cost])[0]
+        rise, coef = backward_elimination(base.coefficients, base.hessian, base.support, [budget * base.cost],
+                                          order_weights[base.support // model.n_states])[0]
         if round_ > 1 and np.count_nonzero(coef) == np.count_nonzero(base.coefficients):
             break  # nothing more to drop: another polish would re-fit the same support
         polish_started, polish_used = time.monotonic(), used[0]

@@ -193,6 +193,21 @@ def extended_library(roles: SignalRoles, states: Sequence[str], degree: int = 2,
     return list(dict.fromkeys(terms))
 
 
+def term_degrees(terms: Sequence[str], signals: Sequence[str]) -> np.ndarray:
+    """The degree of each term as a product of factors: the signals' exponents summed, each other
+    factor (``cos(delta)``, a rational term's denominator) counting once; a constant counts as 1.
+
+    ``il_d`` and ``cos(delta)`` are 1, ``Pf*il_d``, ``vc_d**2`` and ``ug*cos(delta - theta_g)`` 2,
+    ``il_d/(1 + il_d**2)`` 2.
+    """
+    degrees = []
+    for text in terms:
+        _, expr = parse_term(text, signals).as_coeff_Mul()
+        powers = expr.as_powers_dict().values() if not expr.is_number else []
+        degrees.append(max(1, sum(abs(int(p)) if p.is_Integer else 1 for p in powers)))
+    return np.array(degrees, dtype=float)
+
+
 def monomial_basis(terms: Sequence[str], signals: Sequence[str]) -> tuple[list[str], "sympy.Matrix"]:
     """Split each term into monomials (products of signals and non-polynomial factors).
 

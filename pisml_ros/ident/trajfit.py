@@ -613,7 +613,7 @@ class _ShootingProblem:
 
 
 def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support: np.ndarray,
-                         budgets) -> list[tuple[float, np.ndarray]]:
+                         budgets, order_weights=None) -> list[tuple[float, np.ndarray]]:
     """Sparser models from a fitted one by greedy backward elimination on its quadratic cost model.
 
     Repeatedly drops the support coefficient whose removal (the others re-fitted through the
@@ -631,6 +631,10 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
         Flat indices of the support coefficients.
     budgets : sequence of float
         Allowed predicted cost rises (absolute, in cost units).
+    order_weights : ndarray, shape (n_support,), optional
+        Positive weights on the rises that rank the removals (the smallest weighted rise goes
+        first); the budgets still count the unweighted rises. A weight below 1 makes a
+        coefficient go sooner than another that costs as little to lose. None: all 1.
 
     Returns
     -------
@@ -641,6 +645,7 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
     d = np.sqrt(np.clip(np.diag(hessian), 1e-300, None))
     beta = coefficients.ravel()[support].astype(float) * d
     h_inv = np.linalg.pinv(hessian / np.outer(d, d), rcond=1e-12, hermitian=True)
+    order_weights = np.ones(beta.size) if order_weights is None else np.asarray(order_weights, dtype=float)
     alive = np.ones(beta.size, dtype=bool)
     rise = 0.0
     path = [(0.0, beta.copy(), alive.copy())]
@@ -649,7 +654,7 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
         diag = np.diag(h_inv)[live]
         with np.errstate(over="ignore", divide="ignore"):  # a pinned coefficient: infinite cost, never dropped
             cost_up = np.where(diag > 0, 0.5 * beta[live] ** 2 / np.maximum(diag, 1e-300), np.inf)
-        k = int(np.argmin(cost_up))
+        k = int(np.argmin(cost_up * order_weights[live]))
         j = live[k]
         if not np.isfinite(cost_up[k]):
             break
