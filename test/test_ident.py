@@ -572,6 +572,14 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     chosen = _selected(template, fast, fast_scores, tolerance=0.5, unstable_rate=1.0)
     assert chosen.metadata["selection"]["chosen"] == "pruned +1 %"
     assert chosen.metadata["selection"]["inconsistent_rest_points"]["backbone"] == 1
+    # ... nor one with a state whose equation has no term (y frozen: no isolated equilibrium, a zero
+    # eigenvalue everywhere), however well it scores
+    template_xy = ExplicitModel(("x", "y"), ("u",), ["1", "x", "y"], np.zeros((3, 2)),
+                                {"reference_points": [{"inputs": [0.0], "state": [1.0, 0.0]}]})
+    frozen = {"refined": ExplicitModel(("x", "y"), ("u",), ["1", "x", "y"], np.array([[1.0, 0], [-1, 0.5], [0.2, -1]]), {}),
+              "pruned +1 %": ExplicitModel(("x", "y"), ("u",), ["1", "x", "y"], np.array([[1.0, 0], [-1, 0], [0.2, 0]]), {})}
+    selection = _selected(template_xy, frozen, {"refined": 0.05, "pruned +1 %": 0.01}, tolerance=0.5).metadata["selection"]
+    assert selection["chosen"] == "refined" and selection["inconsistent_rest_points"] == {"refined": 0, "pruned +1 %": 1}
     # the refinement starts from the best merged or re-fitted model with those equilibria, and from
     # the noise-compensated backbone where it has them
     from pisml_ros.ident.estimators import _refinement_starts

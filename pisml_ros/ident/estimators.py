@@ -110,7 +110,18 @@ def _verdicts(name: str, candidates: dict, points: list, cache: dict) -> list:
 
 def _inconsistent_points(name: str, candidates: dict, points: list, cache: dict, unstable_rate: float) -> int:
     """At how many of ``points`` (where the training records sat at rest) candidate ``name`` has no
-    equilibrium, or one with a mode growing faster than ``unstable_rate`` (1/s)."""
+    equilibrium, or one with a mode growing faster than ``unstable_rate`` (1/s).
+
+    A model with a state whose equation has no term at all counts at every point: that state stays
+    wherever it starts, so the model has no isolated equilibrium (one for each value of the state)
+    and a zero eigenvalue at every operating point, and its stability verdicts say nothing. Seen on
+    the demo's recording (40 dB): the pruning emptied the q-axis voltage integrator's equation (its
+    input, vc_q, stays near 0 in the regulated loop), and the demo reported the model unstable,
+    max Re λ = 0, at every ug.
+    """
+    model = candidates[name]
+    if points and isinstance(model, ExplicitModel) and not np.all(np.any(model.coefficients != 0, axis=0)):
+        return len(points)
     return sum(rate is None or rate > unstable_rate for rate in _growth_rates(name, candidates, points, cache))
 
 
