@@ -289,12 +289,17 @@ def test_term_gradients_by_the_product_rule_match_autodiff():
 
     signals = STATE_NAMES + INPUT_NAMES
     z = torch.tensor(np.random.default_rng(3).normal(size=(6, len(signals))))
+    # plans of degree 3, 2 (the shortcut for two factors) and 1, and none
     for terms in (["1", "il_d", "Pf*vc_q", "ig_d**2", "ug*cos(theta_g - delta)", "sin(delta)**2*il_q"],
+                  ["1", "il_d", "Pf*vc_q", "vc_d**2", "ug*sin(theta_g - delta)", "cos(delta)"],
+                  ["1", "il_d", "cos(delta)"],
                   ["vc_d*ig_d + vc_q*ig_q", "tanh(il_d)", "ug*sin(theta_g - delta)", "Abs(il_q)"]):  # no product plan
         ts = TermSet(terms, signals)
         expected = torch.func.vmap(torch.func.jacfwd(ts.evaluate_torch))(z)
         np.testing.assert_allclose(ts.gradient_torch(z).numpy(), expected.numpy(), atol=1e-12)
         np.testing.assert_allclose(ts.gradient_torch(z[0]).numpy(), ts.gradient(z[0].numpy()), atol=1e-12)
+        values, gradient = ts.values_and_gradient_torch(z)
+        assert torch.equal(values, ts.evaluate_torch(z)) and torch.equal(gradient, ts.gradient_torch(z))
     # without a product plan, sympy's derivatives run in torch where they are plain tensor
     # operations (thread-safe); Abs's derivative is not, and autodiff takes it
     assert TermSet(["vc_d*ig_d + vc_q*ig_q", "tanh(il_d)", "il_q/(1 + il_q**2)"], signals).thread_safe_gradient()

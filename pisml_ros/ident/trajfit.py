@@ -407,12 +407,16 @@ class _ShootingProblem:
             if y_z is None:
                 return self.terms.evaluate_torch(signals) @ c, None, None
             values, grad = self.terms.values_and_gradient_torch(signals)  # (n_win, n_terms[, n_signals])
-            jx = torch.einsum("wts,tj->wjs", grad[..., :n], c)  # (n_win, n, n)
+            # (n_win, n, n): einsum("wts,tj->wjs", ...) as the one product it makes of it, without
+            # its parsing (the same values; the stages are launch-bound on small batches)
+            jx = torch.mm(grad[..., :n].transpose(1, 2).reshape(-1, grad.shape[1]), c).view(
+                grad.shape[0], n, n).transpose(1, 2)
             k_c = None
             if y_c is not None:
                 k_c = torch.einsum("wjs,wsc->wjc", jx, y_c).contiguous()  # ~1.5x a bmm at these sizes
                 # f is linear in the coefficients: d f_j / d c_(term, j) is the term's value
-                k_c.view(n_win, -1).index_add_(1, self.support_flat, values[:, self.term_of] * self.scale_t)
+                k_c.view(n_win, -1).index_add_(1, self.support_flat,
+                                                 torch.index_select(values, 1, self.term_of) * self.scale_t)
             return values @ c, jx @ y_z, k_c
 
         # the tangents are the big tensors of the pass (windows × states × coefficients): one

@@ -225,7 +225,8 @@ class TermSet:
         if not self._torch_plan():
             return self.evaluate_torch(z), self.gradient_torch(z)
         base = self._factor_base(z)
-        return base[..., self._plan[1]].prod(dim=-1), self.gradient_torch(z, base)
+        gathered = base[..., self._plan[1]]
+        return gathered.prod(dim=-1), self._product_rule(z, gathered)
 
     def gradient_torch(self, z, base=None):
         """d term / d signal of a torch tensor (..., n_signals) -> (..., n_terms, n_signals).
@@ -244,6 +245,20 @@ class TermSet:
                 return _stacked_rows(symbolic(*z.unbind(-1)), z)
             jac = torch.func.jacfwd(self.evaluate_torch)
             return torch.func.vmap(jac)(z.reshape(-1, z.shape[-1])).reshape(z.shape[:-1] + (len(self), z.shape[-1]))
+        base = self._factor_base(z) if base is None else base
+        return self._product_rule(z, base[..., self._plan[1]])
+
+    def _product_rule(self, z, gathered):
+        """The product plan's term gradients at ``z`` from its gathered factor values
+        ``gathered`` (..., n_terms, degree).
+
+        The refinement calls this at every Runge-Kutta stage on small batches, where the time goes
+        to launching tensor operations rather than to arithmetic: the varying factor derivatives are
+        set in one indexed assignment and a degree-2 plan (the libraries' usual) takes the other
+        factor as it is, which gives the same values as the general product of the others.
+        """
+        import torch
+
         if self._grad_plan is None:
             factors = self._factors
             # the factors' derivatives: constants (plain signals: 0 or 1) go in a fixed table, the rest
@@ -259,23 +274,29 @@ class TermSet:
                         varying.append((f + 1, k, d))
             fn = sympy.lambdify(self._symbols, [d for _, _, d in varying], modules=[_torch_module(), "math"],
                                 cse=True) if varying else None
-            self._grad_plan = (torch.as_tensor(table), [(f, k) for f, k, _ in varying], fn)
-        table, where, fn = self._grad_plan
+            where = (torch.tensor([f for f, _, _ in varying], dtype=torch.long),
+                     torch.tensor([k for _, k, _ in varying], dtype=torch.long))
+            index = self._plan[1]
+            self._grad_plan = (torch.as_tensor(table), where, fn, [index[:, m].contiguous()
+                                                                     for m in range(index.shape[1])])
+        table, where, fn, columns = self._grad_plan
         if table.device != z.device:
-            table = table.to(z.device)
-            self._grad_plan = (table, where, fn)
-        base = self._factor_base(z) if base is None else base
-        index = self._plan[1]
+            table, where, columns = table.to(z.device), tuple(w.to(z.device) for w in where), \
+                [c.to(z.device) for c in columns]
+            self._grad_plan = (table, where, fn, columns)
         d_factor = table.to(z.dtype).expand(z.shape[:-1] + table.shape)
-        if where:
+        if fn is not None:
             d_factor = d_factor.clone()
-            for (f, k), d in zip(where, fn(*z.unbind(-1))):
-                d_factor[..., f, k] = d
-        gathered = base[..., index]  # (..., n_terms, degree)
-        out = torch.zeros(z.shape[:-1] + (len(self), z.shape[-1]), dtype=z.dtype, device=z.device)
-        for m in range(index.shape[1]):
-            others = torch.cat([gathered[..., :m], gathered[..., m + 1:]], dim=-1).prod(dim=-1)
-            out = out + others.unsqueeze(-1) * d_factor[..., index[:, m], :]
+            d_factor[..., where[0], where[1]] = torch.stack([_column(d, z) for d in fn(*z.unbind(-1))], dim=-1)
+        width = len(columns)
+        out = None
+        for m, column in enumerate(columns):
+            if width == 2:
+                others = gathered[..., 1 - m]
+            else:
+                others = torch.cat([gathered[..., :m], gathered[..., m + 1:]], dim=-1).prod(dim=-1)
+            term = others.unsqueeze(-1) * torch.index_select(d_factor, -2, column)  # 4x quicker than d_factor[..., column, :]
+            out = term if out is None else out + term
         return out
 
     def gradient(self, z: np.ndarray) -> np.ndarray:
