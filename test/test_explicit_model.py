@@ -291,7 +291,7 @@ def test_term_gradients_by_the_product_rule_match_autodiff():
     z = torch.tensor(np.random.default_rng(3).normal(size=(6, len(signals))))
     # plans of degree 3, 2 (the shortcut for two factors) and 1, and none
     for terms in (["1", "il_d", "Pf*vc_q", "ig_d**2", "ug*cos(theta_g - delta)", "sin(delta)**2*il_q"],
-                  ["1", "il_d", "Pf*vc_q", "vc_d**2", "ug*sin(theta_g - delta)", "cos(delta)"],
+                  ["1", "il_d", "Pf*vc_q", "vc_d**2", "ug*sin(delta - theta_g)", "cos(delta)"],
                   ["1", "il_d", "cos(delta)"],
                   ["vc_d*ig_d + vc_q*ig_q", "tanh(il_d)", "ug*sin(theta_g - delta)", "Abs(il_q)"]):  # no product plan
         ts = TermSet(terms, signals)
