@@ -167,6 +167,30 @@ def test_backward_elimination_drops_collinear_spurious_terms():
     assert np.count_nonzero(large[1]) < 3
 
 
+def test_backward_elimination_keeps_the_last_term_of_each_group():
+    # two equations over terms a0, a1: y0 = 2 a0 + a1, y1 = 1e-3 a1 (a state whose equation the data
+    # hardly ask for, like an integrator of a regulated error): by cost alone its only term goes
+    # first; with the equations as groups it stays, and only equation 0 loses a term
+    rng = np.random.default_rng(5)
+    a = rng.standard_normal((300, 2))
+    y0, y1 = a @ np.array([2.0, 1.0]), 1e-3 * a[:, 1]
+    coef = np.array([[2.0, 0.0], [1.0, 1e-3]])  # (terms, equations): the least-squares fit
+    support = np.array([0, 2, 3])  # flat (term, equation): a0 in eq 0, a1 in eq 0, a1 in eq 1
+    block = a.T @ a
+    hessian = np.zeros((3, 3))
+    hessian[:2, :2], hessian[2, 2] = block, block[1, 1]
+    (_, plain), = backward_elimination(coef, hessian, support, [1e12])
+    (_, grouped), = backward_elimination(coef, hessian, support, [1e12], groups=support % 2)
+    assert not plain[:, 1].any()
+    assert np.count_nonzero(grouped[:, 0]) == 1 and grouped[1, 1] == pytest.approx(1e-3)
+    # within a small budget the groups change nothing
+    tiny = 0.5 * 1e-6 * block[1, 1] * 0.5
+    (_, a_plain), = backward_elimination(coef, hessian, support, [tiny])
+    (_, a_grouped), = backward_elimination(coef, hessian, support, [tiny], groups=support % 2)
+    np.testing.assert_array_equal(a_plain, a_grouped)
+    assert np.count_nonzero(a_plain) == 3
+
+
 def test_order_weights_choose_which_of_two_stand_ins_goes_and_the_budget_counts_true_rises():
     # a1 is a near copy of a0 that the data favour a little (y leans on a1): by cost alone a0 goes;
     # with a1 weighted as the higher-degree term (rises ranked at 1/10), a1 goes and a0 carries y

@@ -821,8 +821,9 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         return out
     budgets = tuple(cfg.refine_prune_budgets)
     if budgets and result.hessian is not None:
+        # every equation keeps a term: an empty one freezes its state (no isolated equilibrium)
         pruned = backward_elimination(result.coefficients, result.hessian, result.support,
-                                      [b * result.cost for b in budgets])
+                                      [b * result.cost for b in budgets], groups=result.support % model.n_states)
         for budget, (rise, coef) in zip(budgets, pruned):
             name = f"pruned +{100 * budget:g} %"
             out[name] = ExplicitModel(model.state_names, model.input_names, model.terms, coef,
@@ -868,7 +869,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
             if stage and stage_budget > 0 and result is not None and result.hessian is not None:
                 # the terms the last stage's fit can spare go before the longer (costlier) windows
                 coef = backward_elimination(result.coefficients, result.hessian, result.support,
-                                            [stage_budget * result.cost])[0][1]
+                                            [stage_budget * result.cost], groups=result.support % model.n_states)[0][1]
                 pruned_between.append(int(np.count_nonzero(coef)))
             fitter = make_fitter(window, None, substeps)
             offset = done[0]
@@ -918,8 +919,10 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         if polished is None or polished.hessian is None:
             break
         base = polished
+        # every equation keeps a term: an empty one freezes its state (no isolated equilibrium)
         rise, coef = backward_elimination(base.coefficients, base.hessian, base.support, [budget * base.cost],
-                                          order_weights[base.support // model.n_states])[0]
+                                          order_weights[base.support // model.n_states],
+                                          groups=base.support % model.n_states)[0]
         if round_ > 1 and np.count_nonzero(coef) == np.count_nonzero(base.coefficients):
             break  # nothing more to drop: another polish would re-fit the same support
         polish_started, polish_used = time.monotonic(), used[0]

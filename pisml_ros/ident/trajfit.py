@@ -617,7 +617,7 @@ class _ShootingProblem:
 
 
 def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support: np.ndarray,
-                         budgets, order_weights=None) -> list[tuple[float, np.ndarray]]:
+                         budgets, order_weights=None, groups=None) -> list[tuple[float, np.ndarray]]:
     """Sparser models from a fitted one by greedy backward elimination on its quadratic cost model.
 
     Repeatedly drops the support coefficient whose removal (the others re-fitted through the
@@ -639,6 +639,9 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
         Positive weights on the rises that rank the removals (the smallest weighted rise goes
         first); the budgets still count the unweighted rises. A weight below 1 makes a
         coefficient go sooner than another that costs as little to lose. None: all 1.
+    groups : ndarray of int, shape (n_support,), optional
+        A label per support coefficient (its equation, say): the last one left of a group is
+        never dropped. None: no groups.
 
     Returns
     -------
@@ -650,6 +653,7 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
     beta = coefficients.ravel()[support].astype(float) * d
     h_inv = np.linalg.pinv(hessian / np.outer(d, d), rcond=1e-12, hermitian=True)
     order_weights = np.ones(beta.size) if order_weights is None else np.asarray(order_weights, dtype=float)
+    groups = None if groups is None else np.asarray(groups)
     alive = np.ones(beta.size, dtype=bool)
     rise = 0.0
     path = [(0.0, beta.copy(), alive.copy())]
@@ -658,6 +662,9 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
         diag = np.diag(h_inv)[live]
         with np.errstate(over="ignore", divide="ignore"):  # a pinned coefficient: infinite cost, never dropped
             cost_up = np.where(diag > 0, 0.5 * beta[live] ** 2 / np.maximum(diag, 1e-300), np.inf)
+        if groups is not None:  # a group's last member stays
+            labels, counts = np.unique(groups[live], return_inverse=False, return_counts=True)
+            cost_up = np.where(np.isin(groups[live], labels[counts == 1]), np.inf, cost_up)
         k = int(np.argmin(cost_up * order_weights[live]))
         j = live[k]
         if not np.isfinite(cost_up[k]):
