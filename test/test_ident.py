@@ -553,6 +553,38 @@ def test_sparse_refit_recovers_the_structure_of_clean_records():
         sparse_refit(train, terms, budgets=[1.0], span=399)
 
 
+def test_selection_excuses_a_fold_just_before_a_rest_point_that_the_model_passes_slowly():
+    from pisml_ros.analysis.operating_point import rest_drift
+    from pisml_ros.ident.estimators import _selected
+
+    # x' = 1 - x; y' = a - u - y**2 has a stable equilibrium y = sqrt(a - u) for u < a and none
+    # beyond: at u = 1 (a record at rest at y = 0.01, at the edge of the data) a = 0.9999 passes
+    # by at 2e-4 1/s, a = 0.7 leaves at 0.3 1/s
+    terms = ["1", "x", "u", "y**2", "y"]
+
+    def model(column_y):
+        return ExplicitModel(("x", "y"), ("u",), terms, np.column_stack([[1.0, -1, 0, 0, 0], column_y]), {})
+
+    points = [{"inputs": [0.0], "state": [1.0, 1.0]}, {"inputs": [0.5], "state": [1.0, 0.707]},
+              {"inputs": [1.0], "state": [1.0, 0.01]}]
+    fold, fast = model([0.9999, 0, -1, -1, 0]), model([0.7, 0, -1, -1, 0])
+    assert rest_drift(fold, points[2], 1.0, 0.1) < 1e-3
+    assert rest_drift(fast, points[2], 1.0, 0.1) >= 0.1
+    assert rest_drift(fast, points[2], 1.0, 0.1, max_evaluations=3) == np.inf
+    template = ExplicitModel(("x", "y"), ("u",), terms, np.zeros((5, 2)), {"reference_points": points})
+    candidates = {"backbone": model([1.0, 0, -1, 0, -1]),  # y' = 1 - u - y: an equilibrium at every point
+                  "distilled": fold, "re-fit +100 %": fast,
+                  "re-fit +300 %": model([1e-4, 0, 0, 0, 0])}  # no equilibrium anywhere, however slow
+    scores = {"backbone": 0.05, "distilled": 0.01, "re-fit +100 %": 0.005, "re-fit +300 %": 0.001}
+    selection = _selected(template, candidates, scores, unstable_rate=1.0).metadata["selection"]
+    assert selection["chosen"] == "distilled"
+    assert selection["inconsistent_rest_points"] == {"backbone": 0, "distilled": 0, "re-fit +100 %": 1,
+                                                     "re-fit +300 %": 3}
+    # without a finite growth rate (the default: growth unchecked) there is no time scale to drift on,
+    # and a missing equilibrium counts as it always did
+    assert _selected(template, candidates, scores).metadata["selection"]["chosen"] == "backbone"
+
+
 def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     from pisml_ros.ident.estimators import _selected
 

@@ -131,3 +131,66 @@ def growth_rates_at_points(model, points) -> list:
         except (RuntimeError, ValueError, np.linalg.LinAlgError, FloatingPointError):  # no equilibrium
             rates.append(None)
     return rates
+
+
+
+class _TooSlow(Exception):
+    """An integration that needs more right-hand-side evaluations than allowed."""
+
+
+def rest_drift(model, point, horizon: float, tolerance: float, max_evaluations: int = 5000) -> float:
+    """How far ``model``, run freely from a rest state with its inputs held, moves from it within
+    ``horizon`` seconds, as the largest ‖x(t) − x_rest‖ / ‖x_rest‖ (the run stops once it exceeds
+    ``tolerance``: only whether it stays within matters).
+
+    For a model without an equilibrium near a point where a record sat at rest (a fold of its
+    equilibrium branch just before the point, say): it may pass the point as slowly as a model
+    whose equilibrium there is weakly unstable. Integrated by scipy's BDF with the model's Jacobian
+    (the fast filter modes make explicit steps tiny over a horizon of seconds).
+
+    Parameters
+    ----------
+    model
+        Anything with ``vector_field(x, u)`` and ``jacobian(x, u)``.
+    point : dict
+        ``{"inputs", "state"}`` (as a model's ``metadata["reference_points"]``).
+    horizon : float
+        Seconds.
+    tolerance : float
+        The relative drift at which the run stops.
+    max_evaluations : int
+        A run that needs more evaluations of the vector field (a fast oscillation, say) counts as
+        leaving: inf.
+
+    Returns
+    -------
+    float
+        The largest relative drift seen (at least ``tolerance`` where the run stopped early); inf
+        where the integration fails, leaves finite values or runs out of evaluations.
+    """
+    import scipy.integrate
+
+    x0 = np.asarray(point["state"], dtype=float)
+    u = np.asarray(point["inputs"], dtype=float)
+    size = max(float(np.linalg.norm(x0)), 1e-12)
+    calls = [0]
+
+    def field(_t, x):
+        calls[0] += 1
+        if calls[0] > max_evaluations:
+            raise _TooSlow
+        return model.vector_field(x, u)
+
+    def leaves(_t, x):
+        return np.linalg.norm(x - x0) / size - tolerance
+
+    leaves.terminal = True
+    try:
+        with np.errstate(all="ignore"):
+            sol = scipy.integrate.solve_ivp(field, (0.0, horizon), x0, method="BDF", events=leaves,
+                                            jac=lambda _t, x: model.jacobian(x, u), rtol=1e-6, atol=1e-9)
+    except (_TooSlow, FloatingPointError, ValueError, np.linalg.LinAlgError):
+        return float("inf")
+    if sol.status < 0 or not np.all(np.isfinite(sol.y)):
+        return float("inf")
+    return float(np.max(np.linalg.norm(sol.y - x0[:, None], axis=0)) / size)

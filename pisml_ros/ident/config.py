@@ -209,8 +209,11 @@ class IdentConfig:
     # error is within this fraction of the best is the explicit model
     selection_tolerance: float = 0.5
     # a candidate whose equilibrium at a point where a training record sat at rest has a mode growing
-    # faster than this (1/s) counts as inconsistent there, as one with no equilibrium there; the
-    # candidates with the fewest such points compete (the plant's own boundary mode: +0.25 1/s at ug 1.2)
+    # faster than this (1/s) counts as inconsistent there, as one with no equilibrium there that,
+    # run freely from the rest state, moves more than 10 % within 1 / this seconds (a fold just
+    # before the point is excused where it is passed as slowly; estimators._inconsistent_points);
+    # the candidates with the fewest such points compete (the plant's own boundary mode: +0.25 1/s
+    # at ug 1.2)
     selection_unstable_rate: float = 1.0
 
     @classmethod

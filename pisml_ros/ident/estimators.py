@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..analysis.operating_point import growth_rates_at_points
+from ..analysis.operating_point import growth_rates_at_points, rest_drift
 from ..data import Dataset
 from ..data.dataset import concat_datasets, steady_start_mean
 from ..model import ExplicitModel
@@ -108,9 +108,27 @@ def _verdicts(name: str, candidates: dict, points: list, cache: dict) -> list:
     return [None if rate is None else rate < 0 for rate in _growth_rates(name, candidates, points, cache)]
 
 
-def _inconsistent_points(name: str, candidates: dict, points: list, cache: dict, unstable_rate: float) -> int:
-    """At how many of ``points`` (where the training records sat at rest) candidate ``name`` has no
-    equilibrium, or one with a mode growing faster than ``unstable_rate`` (1/s).
+def _inconsistent_points(name: str, candidates: dict, points: list, cache: dict, unstable_rate: float,
+                         drift_tolerance: float = 0.1) -> int:
+    """At how many of ``points`` (where the training records sat at rest) candidate ``name`` is
+    inconsistent with the record that sat still: its equilibrium there has a mode growing faster
+    than ``unstable_rate`` (1/s), or it has no equilibrium there and, run freely from the rest
+    state, moves more than ``drift_tolerance`` (relative, :func:`rest_drift`) within
+    1 / ``unstable_rate`` seconds (the time a tolerated mode takes to grow e-fold; a mode at 2-3
+    times that rate grows a 0.5 % offset to 10 % in it).
+
+    The drift excuses a missing equilibrium because a model whose equilibrium branch folds just
+    before a point passes it as slowly as one whose equilibrium there is weakly unstable. Measured
+    (50 dB, benchmark recording 0; a rest point at ug 1.199, where the plant itself is weakly
+    unstable, +0.24 1/s): the two sparsest pruned models, stable at the seven other points (-0.5
+    to -0.6 1/s) and nowhere spuriously unstable, have no equilibrium above ug ~1.16 and drift
+    0.9-1.0 % in 1 s. Counted inconsistent there, they lost to a model unstable at +0.16 to +0.26
+    1/s at ug 0.98-1.09, where the plant is at -0.6 to -1.5 1/s (0.267 / 0.468 % IOD / OOD
+    against 0.264 / 0.340 %). The excuse holds only for a model with an equilibrium at more than
+    half of the points: the demo's recording had a pruned model with none at any point that
+    drifted 0.6-3.4 % in 1 s (a q-axis integrator left with a term that does not vanish there). On
+    the 40 dB benchmark recordings every candidate without an equilibrium at a rest point leaves
+    by more than 10 %.
 
     A model with a state whose equation has no term at all counts at every point: that state stays
     wherever it starts, so the model has no isolated equilibrium (one for each value of the state)
@@ -122,7 +140,24 @@ def _inconsistent_points(name: str, candidates: dict, points: list, cache: dict,
     model = candidates[name]
     if points and isinstance(model, ExplicitModel) and not np.all(np.any(model.coefficients != 0, axis=0)):
         return len(points)
-    return sum(rate is None or rate > unstable_rate for rate in _growth_rates(name, candidates, points, cache))
+    rates = _growth_rates(name, candidates, points, cache)
+    # the excuse is for the edge of a branch that exists: a model without an equilibrium at most
+    # of the points cannot be analysed where its own data lie, however slowly it drifts
+    excusable = 2 * sum(rate is not None for rate in rates) > len(rates)
+    count = 0
+    for k, rate in enumerate(rates):
+        if rate is None and not excusable:
+            count += 1
+        elif rate is None:
+            # only where a finite rate is tolerated: "any growth" leaves no time scale to drift on
+            key = (name, "drift", k, unstable_rate)
+            if key not in cache:
+                cache[key] = (rest_drift(model, points[k], 1.0 / unstable_rate, drift_tolerance)
+                              if np.isfinite(unstable_rate) and unstable_rate > 0 else np.inf)
+            count += not cache[key] < drift_tolerance
+        else:
+            count += rate > unstable_rate
+    return count
 
 
 def _with_equilibria(names, candidates: dict, scores: dict, points: list, verdicts: dict) -> list:
