@@ -133,7 +133,6 @@ def growth_rates_at_points(model, points) -> list:
     return rates
 
 
-
 class _TooSlow(Exception):
     """An integration that needs more right-hand-side evaluations than allowed."""
 

@@ -663,7 +663,7 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
         with np.errstate(over="ignore", divide="ignore"):  # a pinned coefficient: infinite cost, never dropped
             cost_up = np.where(diag > 0, 0.5 * beta[live] ** 2 / np.maximum(diag, 1e-300), np.inf)
         if groups is not None:  # a group's last member stays
-            labels, counts = np.unique(groups[live], return_inverse=False, return_counts=True)
+            labels, counts = np.unique(groups[live], return_counts=True)
             cost_up = np.where(np.isin(groups[live], labels[counts == 1]), np.inf, cost_up)
         k = int(np.argmin(cost_up * order_weights[live]))
         j = live[k]
