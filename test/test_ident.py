@@ -496,6 +496,11 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     rounds = refine_explicit(spurious, train, small, IdentConfig.from_mapping({**cfg.to_dict(), "refine_prune_rounds": 3}))
     assert set(rounds) == {"refined", "pruned +1 %"}
     assert rounds["pruned +1 %"].metadata["pruning"]["round"] == 1
+    # the budget is the nominal fraction for the reference number of samples, scaled to these records
+    samples = sum(len(tr.t) for tr in train)
+    pruning = rounds["pruned +1 %"].metadata["pruning"]
+    assert pruning["training_samples"] == samples and pruning["nominal_budget"] == 0.01
+    assert pruning["budget"] == pytest.approx(0.01 * 4812 / samples)
     assert np.all(rounds["pruned +1 %"].coefficients[3:] == 0)
     np.testing.assert_allclose(rounds["pruned +1 %"].coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
     # ranked by degree (the products go first) the rounds come to the same support here

@@ -118,6 +118,16 @@ class IdentConfig:
     # later rounds at +0.05 % (4 rounds): 0.25 / 0.34, 0.62 / 0.67, 0.68 / 0.54, 0.88 / 0.74; at
     # +0.2 % (2 rounds): 0.43 / 0.35, 0.91 / 0.46, 0.62 / 0.45, 0.87 / 0.71
     refine_prune_rounds: int = 3
+    # the rounds' budget is a fraction of the polished cost for this many training samples (the
+    # protocol's 12 records of 401): with N samples it is scaled by this / N; 0: not scaled. The
+    # cost grows with the samples, the rise that dropping a term the data support brings does not
+    # grow with them in proportion: a fixed fraction pruned more of the true terms the longer the
+    # records. Measured (stop 25, 40 dB, IOD / OOD %, coefficients): records of 80 ms, benchmark
+    # recordings 0 / 1 / 2, unscaled 1.09 / 0.70 (64), 0.69 / 0.74 (64), 0.51 / 0.90 (91); scaled
+    # (+0.05 %) 0.51 / 0.28 (62), 0.07 / 0.30 (74), 0.35 / 0.75 (96); recording 0 at +0.025 %:
+    # 0.43 / 0.29 (86). 6 records of 40 ms (recording 0): unscaled 0.91 / 0.67 (122), scaled
+    # (+0.2 %) 0.70 / 0.82 (92). The protocol's size: unchanged
+    refine_prune_reference_samples: int = 4812
     # the order in which the rounds' pruning drops terms: a term of degree k (library.term_degrees)
     # ranks as if its removal cost this factor^-(k-1) of what it does, so a product goes ahead of a
     # plain signal that costs as little to lose; the budget counts the true cost. 1: cost alone.
@@ -279,7 +289,8 @@ class IdentConfig:
         for key in ["backbone_threshold", "backbone_alpha", "coupling_min_separation", "dropout", "lambda_pert", "lambda_sparse",
                     "distill_threshold", "distill_spread", "refine_max_nfev", "selection_tolerance", "selection_unstable_rate",
                     "refine_stability_weight", "refine_stability_margin", "refine_equilibrium_weight",
-                    "refine_growing_stability_weight", "refine_stage_prune_budget", "refine_stage_tolerance"]:
+                    "refine_growing_stability_weight", "refine_stage_prune_budget", "refine_stage_tolerance",
+                    "refine_prune_reference_samples"]:
             if getattr(self, key) < 0:
                 raise ConfigError(f"identification config: {key} must be >= 0, got {getattr(self, key)}")
         if not re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.device):

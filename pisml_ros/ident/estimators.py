@@ -946,7 +946,10 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients, meta)}
     if not cfg.refine_prune_budgets or result.hessian is None:
         return out
-    budget = cfg.refine_prune_budgets[0]
+    samples = sum(len(tr.t) for tr in train)
+    # a fraction of the cost for the reference number of samples (IdentConfig.refine_prune_reference_samples)
+    budget = cfg.refine_prune_budgets[0] * (cfg.refine_prune_reference_samples / max(samples, 1)
+                                            if cfg.refine_prune_reference_samples > 0 else 1.0)
     polished = result
     for round_ in range(1, cfg.refine_prune_rounds + 1):
         # each round prunes the last round's polished model (its quadratic cost model is taken at a
@@ -967,11 +970,14 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         except (np.linalg.LinAlgError, FloatingPointError) as err:
             model.metadata.setdefault("refinement_errors", []).append(f"polish: {type(err).__name__}: {err}")
             polished = None
-        pruning = {"budget": budget, "round": round_, "predicted_cost_rise": rise / max(base.cost, 1e-300),
+        pruning = {"budget": budget, "nominal_budget": cfg.refine_prune_budgets[0], "training_samples": samples,
+                   "reference_samples": cfg.refine_prune_reference_samples,
+                   "round": round_, "predicted_cost_rise": rise / max(base.cost, 1e-300),
                    "polish_windows": [w for w, _ in schedule],
                    "polish_cost": None if polished is None else polished.cost,
                    "polish_evaluations": used[0] - polish_used, "polish_seconds": time.monotonic() - polish_started}
-        name = f"pruned +{100 * budget:g} %" + ("" if round_ == 1 else f" x{round_}")
+        # named by the nominal budget: the same names whatever the records' length
+        name = f"pruned +{100 * cfg.refine_prune_budgets[0]:g} %" + ("" if round_ == 1 else f" x{round_}")
         out[name] = ExplicitModel(model.state_names, model.input_names, model.terms,
                                   coef if polished is None else polished.coefficients, {**meta, "pruning": pruning})
     if progress:  # stages that converged early leave evaluations of their budget unused
