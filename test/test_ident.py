@@ -497,7 +497,7 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     assert set(rounds) == {"refined", "pruned +1 %"}
     assert rounds["pruned +1 %"].metadata["pruning"]["round"] == 1
     # the budget is the nominal fraction for the reference number of samples, scaled to these records
-    samples = sum(len(tr.t) for tr in train)
+    samples = train.n_samples
     pruning = rounds["pruned +1 %"].metadata["pruning"]
     assert pruning["training_samples"] == samples and pruning["nominal_budget"] == 0.01
     assert pruning["budget"] == pytest.approx(0.01 * 4812 / samples)

@@ -946,7 +946,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients, meta)}
     if not cfg.refine_prune_budgets or result.hessian is None:
         return out
-    samples = sum(len(tr.t) for tr in train)
+    samples = train.n_samples
     # a fraction of the cost for the reference number of samples (IdentConfig.refine_prune_reference_samples)
     budget = cfg.refine_prune_budgets[0] * (cfg.refine_prune_reference_samples / max(samples, 1)
                                             if cfg.refine_prune_reference_samples > 0 else 1.0)
