@@ -293,6 +293,7 @@ def test_term_gradients_by_the_product_rule_match_autodiff():
     for terms in (["1", "il_d", "Pf*vc_q", "ig_d**2", "ug*cos(theta_g - delta)", "sin(delta)**2*il_q"],
                   ["1", "il_d", "Pf*vc_q", "vc_d**2", "ug*sin(delta - theta_g)", "cos(delta)"],
                   ["1", "il_d", "cos(delta)"],
+                  ["1", "il_d", "il_d*(Pf - 0.5)", "(Pf - 0.5)**2", "ig_q*(Pf - 0.5)"],  # affine factors as written
                   ["vc_d*ig_d + vc_q*ig_q", "tanh(il_d)", "ug*sin(theta_g - delta)", "Abs(il_q)"]):  # no product plan
         ts = TermSet(terms, signals)
         expected = torch.func.vmap(torch.func.jacfwd(ts.evaluate_torch))(z)
@@ -300,6 +301,7 @@ def test_term_gradients_by_the_product_rule_match_autodiff():
         np.testing.assert_allclose(ts.gradient_torch(z[0]).numpy(), ts.gradient(z[0].numpy()), atol=1e-12)
         values, gradient = ts.values_and_gradient_torch(z)
         assert torch.equal(values, ts.evaluate_torch(z)) and torch.equal(gradient, ts.gradient_torch(z))
+    assert TermSet(["1", "il_d*(Pf - 0.5)"], signals)._torch_plan()
     # without a product plan, sympy's derivatives run in torch where they are plain tensor
     # operations (thread-safe); Abs's derivative is not, and autodiff takes it
     assert TermSet(["vc_d*ig_d + vc_q*ig_q", "tanh(il_d)", "il_q/(1 + il_q**2)"], signals).thread_safe_gradient()
@@ -323,3 +325,44 @@ def test_data_coverage_flags_operating_points_outside_the_training_inputs():
     # models from before the range was recorded, and the plant, carry none
     assert data_coverage(ExplicitModel(["x"], ["ug", "theta_g"], ["x"], [[-1.0]]), (0.4, 0.0)) is None
     assert data_coverage(InverterPlant(), (0.4, 0.0)) is None
+
+
+def test_equilibrium_prior_in_states_is_the_newton_step_to_the_models_equilibrium(truth):
+    """With ``equilibrium_space="states"`` the residuals are sqrt(w)·(J⁻¹f)(x_rest)·sqrt(samples)/noise:
+    the distance from the rest state to the model's equilibrium in units of the noise left in the rest
+    mean; their θ-derivatives (J held) match finite differences near the equilibrium; a slow-row
+    error that is small in rates is large in states."""
+    from pisml_ros.data.dataset import steady_start_mean
+    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
+
+    model, plant = truth
+    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.0, rng_seed=2)
+    small = generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.008))
+    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
+    problem = _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, lambda_eq=4.0,
+                               equilibrium_space="states")
+    theta = start.ravel()[problem.idx] / problem.scale
+    res, jac = problem._equilibrium_residuals(theta)
+    assert res.shape == (13,) and jac.shape == (13, theta.size)
+    tr0 = next(iter(small))
+    rests = [steady_start_mean(tr) for tr in small]
+    rest = np.mean([r for _, r in rests], axis=0)
+    samples = sum(n for n, _ in rests)
+    newton = np.linalg.solve(model.jacobian(rest, tr0.u[0]), model.vector_field(rest[None], tr0.u[:1])[0])
+    np.testing.assert_allclose(res, 2.0 * newton * np.sqrt(samples) * weights, rtol=1e-6, atol=1e-6)
+    # the rest mean of clean records is the equilibrium: a few noise units at most
+    assert np.abs(res).max() < 1.0
+    numeric = np.zeros((13, 5))
+    for i in range(5):
+        step = np.zeros_like(theta)
+        step[i] = 1e-7
+        numeric[:, i] = (problem._equilibrium_residuals(theta + step)[0]
+                         - problem._equilibrium_residuals(theta - step)[0]) / 2e-7
+    np.testing.assert_allclose(jac[:, :5], numeric, rtol=1e-3, atol=1e-6 * np.abs(jac).max())
+    # a 1 % error in a slow (integrator) row's coefficient: a large shift of the equilibrium
+    off = theta.copy()
+    slow = np.flatnonzero(problem.row_of.numpy() == STATE_NAMES.index("phi_d"))[0]
+    off[slow] *= 1.01
+    assert np.abs(problem._equilibrium_residuals(off)[0]).max() > 100.0
+    with pytest.raises(ValueError, match="equilibrium_space must be rates or states"):
+        _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, lambda_eq=1.0, equilibrium_space="x")

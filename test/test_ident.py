@@ -773,6 +773,55 @@ def test_physics_filter_start_drops_cancelling_terms_and_refits_the_row(plant, t
     assert error(restricted.coefficients) < 0.25 and error(dropped) > 2 * error(restricted.coefficients)
 
 
+def test_centred_couplings_are_the_same_field_and_make_the_plain_signal_costly_to_drop(train):
+    from pisml_ros.ident.estimators import _couplings_centred, frequency_centre
+    from pisml_ros.ident.library import centred_terms, rebased
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    clean, train = train, add_measurement_noise(train, 40.0, seed=1)
+
+    signals = STATE_NAMES + INPUT_NAMES
+    terms = ["1", "il_d", "ig_d", "Pf*il_d", "Pf*ig_q", "Pf**2", "Pf*Qf", "vc_d*ig_d + vc_q*ig_q", "Pf"]
+    assert centred_terms(terms, signals, "Pf", 0.5) == [
+        "1", "il_d", "ig_d", "il_d*(Pf - 0.5)", "ig_q*(Pf - 0.5)", "(Pf - 0.5)**2", "Qf*(Pf - 0.5)",
+        "vc_d*ig_d + vc_q*ig_q", "Pf"]
+    rng = np.random.default_rng(0)
+    coef = rng.normal(size=(len(terms), len(STATE_NAMES))) * (rng.random((len(terms), len(STATE_NAMES))) < 0.5)
+    start = ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, coef)
+    config = IdentConfig()
+    centred = _couplings_centred(start, config, train)
+    centre = round(frequency_centre(train, "Pf"), 4)
+    assert abs(centre - 0.5) < 0.05  # the droop power state sits at its set-point P* = 0.5 at rest
+    assert centred.metadata["centred_couplings"] == {"signal": "Pf", "centre": centre}
+    assert f"il_d*(Pf - {centre:g})" in centred.terms and "Pf*il_d" not in centred.terms
+    # ig_q came in with its product: (Pf - P0)*ig_q needs it
+    assert "ig_q" in centred.terms and "ig_q" not in terms
+    x, u = np.concatenate([tr.x for tr in train]), np.concatenate([tr.u for tr in train])
+    np.testing.assert_allclose(centred.vector_field(x, u), start.vector_field(x, u), rtol=1e-10, atol=1e-9)
+    # off on clean records (there the equation-error re-fit separates them) or when switched off, and
+    # a model without products of the frequency state is returned as it is
+    assert _couplings_centred(start, config, clean) is start
+    assert _couplings_centred(start, IdentConfig.from_mapping({"refine_centred_couplings": False}), train) is start
+    plain = ExplicitModel(STATE_NAMES, INPUT_NAMES, ["1", "il_d"], np.ones((2, 13)))
+    assert _couplings_centred(plain, config, train) is plain
+    # terms that cannot express the field are refused
+    with pytest.raises(ValueError, match="do not span"):
+        rebased(["Pf*il_d"], np.ones((1, 1)), ["il_d*(Pf - 0.5)"], signals)
+    # why: where Pf hardly leaves P0, Pf*il_d and il_d are nearly the same column, and dropping il_d
+    # from a fit with both costs less than the noise does (the product takes its place); written
+    # about P0 the product is only its deviation, and dropping il_d costs its whole effect
+    pf = 0.5 + 0.001 * rng.standard_normal(400)
+    il = rng.standard_normal(400)
+    target = 377.0 * il + rng.standard_normal(400)
+    rises = []
+    for product in (pf * il, (pf - 0.5) * il):
+        a = np.column_stack([il, product])
+        full = np.linalg.lstsq(a, target, rcond=None)[0]
+        cost = 0.5 * np.sum((a @ full - target) ** 2)
+        rises.append(full[0] ** 2 / (2 * np.linalg.inv(a.T @ a)[0, 0]) / cost)  # dropping il_d, re-fitted
+    assert rises[0] < 1.0 and rises[1] > 1e4
+
+
 def test_a_fit_is_reproducible(train, small):
     """Same data, same seed: the same models (the network's initial weights come from the seed too)."""
     config = IdentConfig.from_mapping({**FAST, "refine": False})

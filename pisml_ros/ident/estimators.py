@@ -26,8 +26,8 @@ from ..model import ExplicitModel
 from ..model.expressions import term_set
 from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
-from .library import (coupling_separation, extended_library, filter_row_mask, integrator_row_mask, monomial_basis,
-                      physics_library, term_degrees)
+from .library import (centred_terms, coupling_separation, extended_library, filter_row_mask, integrator_row_mask,
+                      monomial_basis, physics_library, rebased, term_degrees)
 from .trajfit import blas_threads
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
@@ -215,6 +215,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
         chosen = min(pool, key=lambda name: (candidates[name].n_parameters, scores[name])) if pool else best
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
+    if "centred_couplings" in candidates[chosen].metadata:  # what P0 in its terms' (Pf - P0) is
+        model.metadata["centred_couplings"] = candidates[chosen].metadata["centred_couplings"]
     model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores),
                                    "nonzero": {name: int(c.n_parameters) for name, c in candidates.items()},
                                    "tolerance": tolerance, "inconsistent_rest_points": misfits,
@@ -389,8 +391,9 @@ class PISML(_Estimator):
 
             def refine_from(start, progress):
                 errors: dict = {}
-                refined = refine_explicit(_integrators_restricted(candidates[start], cfg, train), train, smallsignal, cfg,
-                                          progress, start_error=scores[start], errors=errors, scoring=scoring)
+                begin = _couplings_centred(_integrators_restricted(candidates[start], cfg, train), cfg, train)
+                refined = refine_explicit(begin, train, smallsignal, cfg, progress, start_error=scores[start],
+                                          errors=errors, scoring=scoring)
                 return refined, errors
 
             def add(k, refined, errors):
@@ -582,6 +585,43 @@ def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Datas
             coef[cols, j] = np.linalg.solve(gram, a[:, cols].T @ b[:, j] - noise_ab[cols, j])
         meta["filter_terms"] = "physics"
     return ExplicitModel(model.state_names, model.input_names, model.terms, coef, meta)
+
+
+def frequency_centre(train: Dataset, frequency: str) -> float:
+    """Where the frequency state sits at rest: the median of its rest values over the records that
+    start at rest (the droop power state's set-point), else its mean over every sample."""
+    column = list(train.state_names).index(frequency)
+    rests = [rest[column] for tr in train for _, rest in [steady_start_mean(tr)] if rest is not None]
+    values = rests or [float(np.mean(np.concatenate([tr.x[:, column] for tr in train])))]
+    return float(np.median(values))
+
+
+def _couplings_centred(model: ExplicitModel, cfg: IdentConfig, train: Dataset) -> ExplicitModel:
+    """``model`` with its products of the frequency state written about its rest value
+    (:func:`~.library.centred_terms`; ``cfg.refine_centred_couplings``), the same vector field.
+
+    The refinement then fits, and its pruning drops, ``(Pf - P0)*s`` and ``s`` as separate effects:
+    with ``Pf*s`` (≈ ``P0*s`` at every rest point) the pruning could drop ``s`` itself at no cost and
+    keep the product as its stand-in — at 40 dB it dropped ``il_d`` from the grid-current rows and
+    kept ``Pf*il_d`` and ``Pf*ig_d`` at ±540.
+    """
+    frequency = cfg.roles.frequency
+    if not (cfg.refine_centred_couplings and frequency in model.state_names and _noisy(train)):
+        return model
+    signals = list(model.state_names) + list(model.input_names)
+    centre = round(frequency_centre(train, frequency), 4)
+    centred = centred_terms(model.terms, signals, frequency, centre)
+    if centred == list(model.terms):
+        return model
+    # the deviation products bring their plain factors (il_d from (Pf - P0)*il_d)
+    needed, _ = monomial_basis([t for t, c in zip(centred, model.terms) if t != c], signals)
+    plain, _ = monomial_basis(model.terms, signals)
+    terms = centred + [m for m in needed if m not in plain and m not in centred]
+    coef = rebased(model.terms, model.coefficients, terms, signals)
+    used = np.any(coef != 0, axis=1)
+    meta = {**model.metadata, "centred_couplings": {"signal": frequency, "centre": centre}}
+    return ExplicitModel(model.state_names, model.input_names, [t for t, keep in zip(terms, used) if keep],
+                         coef[used], meta)
 
 
 def _refinement_starts(candidates: dict, scores: dict, points: list, verdicts: dict | None = None) -> list:
@@ -898,7 +938,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     degrees = term_degrees(model.terms, tuple(model.state_names) + tuple(model.input_names))
     order_weights = cfg.refine_prune_degree_preference ** -(degrees - 1.0)
 
-    def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0):
+    def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0):
         result = None
         for stage, (window, evaluations) in enumerate(schedule):
             if stage and stage_budget > 0 and result is not None and result.hessian is not None:
@@ -919,7 +959,9 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                                     on_evaluation=on_evaluation, fit_starts_first=True,
                                     lambda_stab=lambda_stab, stability_margin=cfg.refine_stability_margin,
                                     stability_records=_stability_anchors(train, smallsignal, cfg),
-                                    lambda_eq=cfg.refine_equilibrium_weight, ftol=cfg.refine_stage_tolerance)
+                                    lambda_eq=rest_weight or cfg.refine_equilibrium_weight,
+                                    equilibrium_space="states" if rest_weight else "rates",
+                                    ftol=cfg.refine_stage_tolerance)
             except ValueError as err:  # no trajectory as long as the window: stop growing
                 model.metadata.setdefault("refinement_notes", []).append(f"window {window}: {err}")
                 break
@@ -966,7 +1008,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         polish_started, polish_used = time.monotonic(), used[0]
         schedule = polish if round_ == 1 else repolish
         try:
-            polished = run(coef, schedule, cfg.refine_stability_weight) if schedule else None
+            polished = run(coef, schedule, cfg.refine_stability_weight, rest_weight=cfg.refine_rest_weight) \
+                if schedule else None
         except (np.linalg.LinAlgError, FloatingPointError) as err:
             model.metadata.setdefault("refinement_errors", []).append(f"polish: {type(err).__name__}: {err}")
             polished = None

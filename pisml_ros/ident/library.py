@@ -237,3 +237,50 @@ def monomial_basis(terms: Sequence[str], signals: Sequence[str]) -> tuple[list[s
         for key, value in row.items():
             mapping[i, basis.index(key)] = value
     return basis, mapping
+
+
+def centred_terms(terms: Sequence[str], signals: Sequence[str], signal: str, centre: float) -> list[str]:
+    """``terms`` with ``signal`` written as its deviation ``(signal - centre)`` in every product.
+
+    A product such as ``Pf*il_d`` becomes ``il_d*(Pf - 0.5)``; ``signal`` alone, sums (``vc_d*ig_d +
+    vc_q*ig_q``) and terms without it stay as they are. Where a signal hardly leaves ``centre`` (the
+    droop power state sits at its set-point at every operating point of a grid-forming inverter),
+    ``signal*s`` is nearly ``centre*s``: a sparse fit can then swap ``s`` for the product at no cost.
+    The deviation product is the product's own contribution, so dropping ``s`` costs what ``s`` does.
+    """
+    out = []
+    symbol = sympy.Symbol(signal, real=True)
+    for text in terms:
+        expr = parse_term(text, signals)
+        coeff, rest = expr.as_coeff_Mul()
+        product = rest.is_Mul or (rest.is_Pow and rest.base == symbol)
+        if coeff == 1 and product and symbol in rest.free_symbols and rest.as_powers_dict().get(symbol, 0):
+            out.append(sympy.sstr(rest.subs(symbol, symbol - sympy.Float(centre, 6))))
+        else:
+            out.append(text)
+    return out
+
+
+def rebased(terms: Sequence[str], coefficients: np.ndarray, new_terms: Sequence[str], signals: Sequence[str],
+            rtol: float = 1e-9) -> np.ndarray:
+    """Coefficients over ``new_terms`` of the same vector field as ``coefficients`` over ``terms``.
+
+    Both term lists are expanded into monomials (:func:`monomial_basis`) and the new coefficients
+    solve ``mapping_newᵀ C_new = mapping_oldᵀ C`` (exactly, where ``new_terms`` span the old ones).
+
+    Raises
+    ------
+    ValueError
+        When ``new_terms`` cannot express the field of ``terms`` (relative residual above ``rtol``).
+    """
+    basis, mapping = monomial_basis([*terms, *new_terms], signals)
+    old, new = mapping[:len(terms)], mapping[len(terms):]
+    target = old.T @ np.asarray(coefficients, dtype=float)
+    solution = np.linalg.lstsq(new.T, target, rcond=None)[0]
+    residual = np.linalg.norm(new.T @ solution - target)
+    if residual > rtol * max(np.linalg.norm(target), 1e-300):
+        raise ValueError(f"the new terms do not span the old ones (relative residual "
+                         f"{residual / max(np.linalg.norm(target), 1e-300):.2e})")
+    # exact zeros stay zeros: the support of a row is what the refinement fits
+    solution[np.abs(solution) <= 1e-12 * np.abs(solution).max(initial=0.0)] = 0.0
+    return solution

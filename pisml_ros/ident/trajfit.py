@@ -102,7 +102,7 @@ class TrajectoryFitter:
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
             on_evaluation=None, keep_going=None, fit_starts_first: bool = False,
             lambda_stab: float = 0.0, stability_margin: float = 0.1, stability_records=None,
-            lambda_eq: float = 0.0, ftol: float = 1e-8) -> FitResult:
+            lambda_eq: float = 0.0, ftol: float = 1e-8, equilibrium_space: str = "rates") -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -125,6 +125,14 @@ class TrajectoryFitter:
             each equation's ``sqrt(lambda_eq) * f_j(x_r, u_r) / σ_j``, σ_j the spread of f_j that
             the noise left in the rest mean makes (the start model's Jacobian, the residual weights'
             noise levels, the number of samples averaged).
+        equilibrium_space : {"rates", "states"}
+            Where the equilibrium prior measures the misfit: "rates" as above; "states" the distance
+            from each rest state to the model's equilibrium next to it (one Newton step,
+            ``J(x_r)⁻¹ f(x_r)``, the current model's Jacobian) in units of the noise left in the
+            rest mean, ``sqrt(lambda_eq) * (J⁻¹f)_k * sqrt(samples) / noise_k``. Multiple shooting
+            fits every window's start state, so a slow state's equilibrium can sit far from where
+            the records rested at no trajectory cost; in rates, a small slow-row rate is a large
+            state offset (J⁻¹ is large along the slow modes), which this unit sees.
         max_nfev : int
             Cost evaluations (the start and every trial step).
         ftol : float
@@ -152,7 +160,8 @@ class TrajectoryFitter:
         try:
             with blas_threads(1 if self.threads > 1 else None):
                 problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
-                                           lambda_stab, stability_margin, stability_records, lambda_eq)
+                                           lambda_stab, stability_margin, stability_records, lambda_eq,
+                                           equilibrium_space)
                 return self._solve(torch, problem, coef0, max_nfev, on_evaluation, keep_going, fit_starts_first,
                                    ftol)
         finally:
@@ -228,7 +237,8 @@ class _ShootingProblem:
     """
 
     def __init__(self, fitter: TrajectoryFitter, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
-                 lambda_stab=0.0, stability_margin=0.1, stability_records=None, lambda_eq=0.0):
+                 lambda_stab=0.0, stability_margin=0.1, stability_records=None, lambda_eq=0.0,
+                 equilibrium_space="rates"):
         import torch
 
         torch.set_default_dtype(torch.float64)
@@ -277,6 +287,10 @@ class _ShootingProblem:
         # records of one point share their rest state: the mean of their steady starts)
         self.rest_gradients = []
         self.rest_values = []  # equilibrium prior: (term values, 1 / σ of f there, θ-slopes) per rest state
+        if equilibrium_space not in ("rates", "states"):
+            raise ValueError(f"equilibrium_space must be rates or states, got {equilibrium_space!r}")
+        self.equilibrium_space = equilibrium_space
+        self.rest_states = []  # equilibrium prior in states: (term gradients, sqrt(samples) / noise) per rest state
         anchors = smallsignal if stability_records is None else stability_records
         if anchors is not None and (lambda_stab > 0 or lambda_eq > 0):
             rests: dict = {}
@@ -297,6 +311,9 @@ class _ShootingProblem:
                     jac = coef0.T @ grad
                     sigma = np.sqrt((jac ** 2) @ (noise ** 2) / samples)
                     sigma = np.maximum(sigma, 1e-9 * (1.0 + np.abs(jac).max()))
+                    if equilibrium_space == "states":
+                        sigma = np.ones(n)  # the slopes below are then plain ∂f/∂θ
+                        self.rest_states.append((grad, np.sqrt(samples) / noise))
                     values = self.terms.evaluate(point[None])[0]
                     # f is linear in θ: the prior's θ-derivatives are fixed, built once here
                     slopes = np.zeros((n, self.idx.size))
@@ -495,6 +512,20 @@ class _ShootingProblem:
         if not self.rest_values:
             return np.zeros(0), np.zeros((0, self.idx.size))
         c = self.coefficients(np.asarray(theta))
+        if self.equilibrium_space == "states":
+            res, rows = [], []
+            for (values, _, slopes), (grad, unit) in zip(self.rest_values, self.rest_states):
+                # the Newton step to the model's equilibrium; its θ-derivative with J held (the term
+                # J⁻¹·dJ·J⁻¹f is second order where the step is small)
+                jac = c.T @ grad
+                rhs = np.column_stack([values @ c, slopes])
+                try:
+                    solved = scipy.linalg.solve(jac, rhs, check_finite=False)
+                except (np.linalg.LinAlgError, ValueError):
+                    solved = np.linalg.lstsq(jac, rhs, rcond=None)[0]
+                res.append(self.sqrt_le * unit * solved[:, 0])
+                rows.append(self.sqrt_le * unit[:, None] * solved[:, 1:])
+            return np.concatenate(res), np.concatenate(rows)
         res = [self.sqrt_le * (values @ c) * inv_sigma for values, inv_sigma, _ in self.rest_values]
         return np.concatenate(res), self.sqrt_le * np.concatenate([slopes for _, _, slopes in self.rest_values])
 

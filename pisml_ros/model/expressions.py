@@ -140,7 +140,11 @@ class TermSet:
         for expr in self.exprs:
             coeff, rest = sympy.expand(expr).as_coeff_Mul()
             if coeff != 1 or isinstance(rest, sympy.Add):
-                return None
+                # a product with an affine factor, such as (Pf - 0.5)*il_d, as it is written: the
+                # factor's derivatives are constants like a signal's
+                coeff, rest = expr.as_coeff_Mul()
+                if coeff != 1 or isinstance(rest, sympy.Add):
+                    return None
             row = []
             for base, power in (rest.as_powers_dict().items() if rest != 1 else []):
                 if not (power.is_Integer and 0 < int(power) <= 4):
