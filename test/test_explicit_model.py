@@ -253,22 +253,14 @@ def test_equilibrium_prior_residuals_are_the_field_at_the_rest_states(truth):
     """The equilibrium prior's residuals are sqrt(w)·f(x_rest, u)/σ per equation at each anchoring rest
     state (σ: the noise left in the rest mean, through the start model's Jacobian), linear in θ with
     the derivatives it reports; at the true model they are small, off it they are not."""
-    from pisml_ros.data.dataset import steady_start_mean
-    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
+    from pisml_ros.ident.trajfit import _ShootingProblem
 
-    model, plant = truth
-    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.0, rng_seed=2)
-    small = generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.008))
-    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
-    problem = _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, lambda_eq=4.0)
+    model, data, fitter, problem, start, small, weights, rest, samples = _equilibrium_prior_case(truth, "rates")
     theta = start.ravel()[problem.idx] / problem.scale
     res, jac = problem._equilibrium_residuals(theta)
     # both small-signal records sit at ug 0.8 before their steps: one rest state
     assert res.shape == (13,) and jac.shape == (13, theta.size)
     tr0 = next(iter(small))
-    rests = [steady_start_mean(tr) for tr in small]
-    rest = np.mean([r for _, r in rests], axis=0)
-    samples = sum(n for n, _ in rests)
     sigma = np.sqrt(model.jacobian(rest, tr0.u[0]) ** 2 @ (1 / weights) ** 2 / samples)
     np.testing.assert_allclose(res, 2.0 * model.vector_field(rest[None], tr0.u[:1])[0] / sigma, rtol=1e-8, atol=1e-8)
     assert np.abs(res).max() < 1.0  # the plant sat at its equilibrium: f there is ~0
@@ -332,22 +324,13 @@ def test_equilibrium_prior_in_states_is_the_newton_step_to_the_models_equilibriu
     the distance from the rest state to the model's equilibrium in units of the noise left in the rest
     mean; their θ-derivatives (J held) match finite differences near the equilibrium; a slow-row
     error that is small in rates is large in states."""
-    from pisml_ros.data.dataset import steady_start_mean
-    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
+    from pisml_ros.ident.trajfit import _ShootingProblem
 
-    model, plant = truth
-    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.0, rng_seed=2)
-    small = generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.008))
-    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
-    problem = _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, lambda_eq=4.0,
-                               equilibrium_space="states")
+    model, data, fitter, problem, start, small, weights, rest, samples = _equilibrium_prior_case(truth, "states")
     theta = start.ravel()[problem.idx] / problem.scale
     res, jac = problem._equilibrium_residuals(theta)
     assert res.shape == (13,) and jac.shape == (13, theta.size)
     tr0 = next(iter(small))
-    rests = [steady_start_mean(tr) for tr in small]
-    rest = np.mean([r for _, r in rests], axis=0)
-    samples = sum(n for n, _ in rests)
     newton = np.linalg.solve(model.jacobian(rest, tr0.u[0]), model.vector_field(rest[None], tr0.u[:1])[0])
     np.testing.assert_allclose(res, 2.0 * newton * np.sqrt(samples) * weights, rtol=1e-6, atol=1e-6)
     # the rest mean of clean records is the equilibrium: a few noise units at most
@@ -366,3 +349,21 @@ def test_equilibrium_prior_in_states_is_the_newton_step_to_the_models_equilibriu
     assert np.abs(problem._equilibrium_residuals(off)[0]).max() > 100.0
     with pytest.raises(ValueError, match="equilibrium_space must be rates or states"):
         _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, lambda_eq=1.0, equilibrium_space="x")
+
+
+def _equilibrium_prior_case(truth, space):
+    """The true model's shooting problem with the equilibrium prior (weight 4) anchored at two
+    small-signal records' shared rest state: (model, data, fitter, problem, start, small, weights, rest
+    mean, samples averaged)."""
+    from pisml_ros.data.dataset import steady_start_mean
+    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
+
+    model, plant = truth
+    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.0, rng_seed=2)
+    small = generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.008))
+    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
+    problem = _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, lambda_eq=4.0,
+                               equilibrium_space=space)
+    rests = [steady_start_mean(tr) for tr in small]
+    return (model, data, fitter, problem, start, small, weights, np.mean([r for _, r in rests], axis=0),
+            sum(n for n, _ in rests))

@@ -588,6 +588,23 @@ def test_selection_excuses_a_fold_just_before_a_rest_point_that_the_model_passes
     # without a finite growth rate (the default: growth unchecked) there is no time scale to drift on,
     # and a missing equilibrium counts as it always did
     assert _selected(template, candidates, scores).metadata["selection"]["chosen"] == "backbone"
+    # a candidate worse than holding the records' first states is no model, consistent or not: the
+    # consistent backbone at 0.05 loses to the inconsistent re-fits when holding scores 0.04
+    held = _selected(template, candidates, scores, unstable_rate=1.0, hold=0.04).metadata["selection"]
+    assert held["chosen"] == "distilled" and held["hold_error_pct"] == 0.04
+    assert _selected(template, candidates, scores, hold=0.04).metadata["selection"]["chosen"] == "re-fit +100 %"
+    # where none beats holding, all compete as before
+    assert _selected(template, candidates, scores, hold=1e-4).metadata["selection"]["chosen"] == "backbone"
+
+
+def test_hold_error_is_the_error_of_holding_each_records_first_state(plant):
+    from pisml_ros.ident.estimators import hold_error, training_error
+
+    records = generate(plant, *schedules_for("train", seed=0, n_traj=3, duration=0.02))
+    # a model whose field is zero holds every state: it scores exactly the hold error
+    frozen = ExplicitModel(STATE_NAMES, INPUT_NAMES, ["1"], np.zeros((1, 13)))
+    assert hold_error(records) == pytest.approx(training_error(frozen, records), rel=1e-9)
+    assert 5.0 < hold_error(records) < 100.0
 
 
 def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():

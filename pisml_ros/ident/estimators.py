@@ -168,7 +168,7 @@ def _with_equilibria(names, candidates: dict, scores: dict, points: list, verdic
 
 
 def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0,
-              verdicts: dict | None = None, unstable_rate: float = np.inf) -> ExplicitModel:
+              verdicts: dict | None = None, unstable_rate: float = np.inf, hold: float = np.inf) -> ExplicitModel:
     """The candidate with the smallest free-run error in ``scores`` (training records, and the
     small-signal records where a fit has them), with ``template``'s metadata and the selection.
 
@@ -186,13 +186,19 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     distribution, and dropping terms must not flip a slow mode the 40 ms records hardly pin.
     (Where another candidate wins, pruning is not considered: on noisy data a refinement that
     lost should not come back through a tolerance.) ``verdicts``: a cache shared across calls.
+    Candidates that reproduce the records worse than holding their first states (``hold``,
+    :func:`hold_error`) are no models and do not compete (unless none does better): on the demo's
+    recording a refinement broke down and its pruning left one term per equation (13 coefficients,
+    56 % against the hold's 40 %), which had an equilibrium at every rest point and won where every
+    sound candidate was inconsistent with some.
     """
     points = template.metadata.get("reference_points") or []
     verdicts = {} if verdicts is None else verdicts
     # a model with no equilibrium near a point where the records sat at rest cannot be analysed
     # there (nor be right there), and one whose equilibrium there has a fast-growing mode contradicts
     # the record that sat still: the candidates with the fewest such points compete
-    finite = [name for name in scores if np.isfinite(scores[name])] or list(scores)
+    finite = ([name for name in scores if scores[name] < hold] or [name for name in scores if np.isfinite(scores[name])]
+              or list(scores))
     misfits = {name: _inconsistent_points(name, candidates, points, verdicts, unstable_rate) for name in finite}
     eligible = [name for name in finite if misfits[name] == min(misfits.values())]
     best = min(eligible, key=lambda name: scores[name])
@@ -220,7 +226,7 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores),
                                    "nonzero": {name: int(c.n_parameters) for name, c in candidates.items()},
                                    "tolerance": tolerance, "inconsistent_rest_points": misfits,
-                                   "unstable_rate": unstable_rate}
+                                   "unstable_rate": unstable_rate, "hold_error_pct": hold}
     return model
 
 
@@ -379,11 +385,12 @@ class PISML(_Estimator):
         # OOD); the small-signal records' errors, 10.5 % against 3.9 %, pick the other (0.31 / 0.39 %)
         scoring = concat_datasets([train, smallsignal]) if smallsignal is not None and len(smallsignal) else train
         scores = training_errors(candidates, scoring)
+        hold = hold_error(scoring)
         verdicts: dict = {}  # stability at the records' rest points, by candidate (selection, refinement start)
         if cfg.refine:
             # refinement takes most of the time: the best explicit model so far goes out first
             preliminary = _selected(explicit, candidates, scores, verdicts=verdicts,
-                                    unstable_rate=cfg.selection_unstable_rate)
+                                    unstable_rate=cfg.selection_unstable_rate, hold=hold)
             preliminary.metadata["stage"] = "explicit (before refinement)"
             self._emit("explicit (before refinement)", 0.7, model=preliminary)
             started = time.monotonic()
@@ -420,7 +427,7 @@ class PISML(_Estimator):
                 # does not give a model consistent with the records' rest points (IdentConfig.refine_starts)
                 add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
                     "refinement", 0.7 + 0.28 * 0.5 * fraction, losses=losses)))
-                needed = not _refinement_suffices(explicit, candidates, scores, cfg, verdicts)
+                needed = not _refinement_suffices(explicit, candidates, scores, cfg, verdicts, hold)
                 explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": needed}
                 if needed:
                     add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
@@ -434,7 +441,7 @@ class PISML(_Estimator):
         scores.update(training_errors(unscored, scoring))
         self.candidates_ = candidates
         explicit = _selected(explicit, candidates, scores, tolerance=cfg.selection_tolerance, verdicts=verdicts,
-                             unstable_rate=cfg.selection_unstable_rate)
+                             unstable_rate=cfg.selection_unstable_rate, hold=hold)
         explicit.metadata["selection"]["scored_on"] = ("training and small-signal records" if scoring is not train
                                                        else "training records")
         self.metrics_["training_error_pct"] = scores[explicit.metadata["selection"]["chosen"]]
@@ -447,13 +454,13 @@ class PISML(_Estimator):
 
 
 def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
-                         verdicts: dict) -> bool:
+                         verdicts: dict, hold: float = np.inf) -> bool:
     """Whether the first refinement start's family already gives the explicit model: the selection
     over the candidates so far takes one of its models, and that model is consistent with every
     operating point where the records sat at rest (an equilibrium there, no mode growing faster than
     ``cfg.selection_unstable_rate``)."""
     chosen = _selected(template, candidates, scores, tolerance=cfg.selection_tolerance, verdicts=verdicts,
-                       unstable_rate=cfg.selection_unstable_rate).metadata["selection"]
+                       unstable_rate=cfg.selection_unstable_rate, hold=hold).metadata["selection"]
     name = chosen["chosen"]
     return _refinement_family(name) == "" and chosen["inconsistent_rest_points"][name] == 0
 
@@ -767,6 +774,16 @@ def training_errors(models: dict, train: Dataset) -> dict:
                         for p, t in zip(pred.trajectories[i * len(train):(i + 1) * len(train)], train)]
             out[key] = float(np.mean(errs)) if np.all(np.isfinite(errs)) else float("inf")
     return out
+
+
+def hold_error(train: Dataset) -> float:
+    """The :func:`training_error` of holding each record's first state (its rest mean where it starts
+    at rest): what a model must beat to say anything about the dynamics (~40 % on the protocol's
+    training and small-signal records, clean or at 40 dB)."""
+    from ..analysis.metrics import relative_error
+
+    return float(np.mean([relative_error(np.repeat(start.x[:1], len(tr), axis=0), tr.x)
+                          for start, tr in zip(_rest_started(train), train)]))
 
 
 class _Stacked:
