@@ -805,7 +805,7 @@ def test_centred_couplings_are_the_same_field_and_make_the_plain_signal_costly_t
     rng = np.random.default_rng(0)
     coef = rng.normal(size=(len(terms), len(STATE_NAMES))) * (rng.random((len(terms), len(STATE_NAMES))) < 0.5)
     start = ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, coef)
-    config = IdentConfig()
+    config = IdentConfig.from_mapping({"refine_centred_couplings": True})
     centred = _couplings_centred(start, config, train)
     centre = round(frequency_centre(train, "Pf"), 4)
     assert abs(centre - 0.5) < 0.05  # the droop power state sits at its set-point P* = 0.5 at rest
@@ -815,10 +815,10 @@ def test_centred_couplings_are_the_same_field_and_make_the_plain_signal_costly_t
     assert "ig_q" in centred.terms and "ig_q" not in terms
     x, u = np.concatenate([tr.x for tr in train]), np.concatenate([tr.u for tr in train])
     np.testing.assert_allclose(centred.vector_field(x, u), start.vector_field(x, u), rtol=1e-10, atol=1e-9)
-    # off on clean records (there the equation-error re-fit separates them) or when switched off, and
-    # a model without products of the frequency state is returned as it is
+    # off by default, and on clean records (there the equation-error re-fit separates them); a model
+    # without products of the frequency state is returned as it is
     assert _couplings_centred(start, config, clean) is start
-    assert _couplings_centred(start, IdentConfig.from_mapping({"refine_centred_couplings": False}), train) is start
+    assert _couplings_centred(start, IdentConfig(), train) is start
     plain = ExplicitModel(STATE_NAMES, INPUT_NAMES, ["1", "il_d"], np.ones((2, 13)))
     assert _couplings_centred(plain, config, train) is plain
     # terms that cannot express the field are refused
