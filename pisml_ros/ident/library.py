@@ -254,7 +254,7 @@ def centred_terms(terms: Sequence[str], signals: Sequence[str], signal: str, cen
         expr = parse_term(text, signals)
         coeff, rest = expr.as_coeff_Mul()
         product = rest.is_Mul or (rest.is_Pow and rest.base == symbol)
-        if coeff == 1 and product and symbol in rest.free_symbols and rest.as_powers_dict().get(symbol, 0):
+        if coeff == 1 and product and rest.as_powers_dict().get(symbol, 0):
             out.append(sympy.sstr(rest.subs(symbol, symbol - sympy.Float(centre, 6))))
         else:
             out.append(text)
