@@ -306,14 +306,15 @@ class _ShootingProblem:
                 if lambda_stab > 0:
                     self.rest_gradients.append(grad)
                 if lambda_eq > 0:
-                    # f at a measured rest state is zero up to the noise left in its mean, carried
-                    # through the start model's Jacobian: the prior's unit for each equation
-                    jac = coef0.T @ grad
-                    sigma = np.sqrt((jac ** 2) @ (noise ** 2) / samples)
-                    sigma = np.maximum(sigma, 1e-9 * (1.0 + np.abs(jac).max()))
                     if equilibrium_space == "states":
                         sigma = np.ones(n)  # the slopes below are then plain ∂f/∂θ
                         self.rest_states.append((grad, np.sqrt(samples) / noise))
+                    else:
+                        # f at a measured rest state is zero up to the noise left in its mean, carried
+                        # through the start model's Jacobian: the prior's unit for each equation
+                        jac = coef0.T @ grad
+                        sigma = np.sqrt((jac ** 2) @ (noise ** 2) / samples)
+                        sigma = np.maximum(sigma, 1e-9 * (1.0 + np.abs(jac).max()))
                     values = self.terms.evaluate(point[None])[0]
                     # f is linear in θ: the prior's θ-derivatives are fixed, built once here
                     slopes = np.zeros((n, self.idx.size))
