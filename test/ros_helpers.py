@@ -23,12 +23,18 @@ def start_node(executable: str, *ros_args: str, log_dir: Path) -> subprocess.Pop
 
 
 def stop_node(proc: subprocess.Popen, timeout: float = 10.0) -> int:
-    """SIGINT, then wait; returns the exit status (kills after the timeout)."""
+    """SIGINT, then wait; returns the exit status (-9: killed after the timeout, its threads' stacks
+    in its log and on stdout, which pytest shows with the failure)."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
         try:
             return proc.wait(timeout)
         except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGUSR1)  # nodes dump their stacks (run_node's faulthandler)
+            time.sleep(1.0)
+            log = getattr(proc, "log_path", None)
+            print(f"pid {proc.pid} did not stop within {timeout} s"
+                  + (f"; its log:\n{log.read_text()}" if log is not None else ""))
             proc.kill()
             proc.wait()
             return -9

@@ -1,6 +1,8 @@
 """Shared plumbing of the nodes: loopback DDS, QoS profiles, parameter declaration, main loop."""
 from __future__ import annotations
 
+import faulthandler
+import signal
 import sys
 
 from .dds_env import configure_loopback_dds
@@ -62,12 +64,17 @@ def publish_diagnostics(node, publisher, statuses) -> None:
 
 def run_node(node_class, args=None) -> int:
     """Init rclpy (``--ros-args`` honoured), spin the node on a multi-threaded executor,
-    shut down cleanly on SIGINT/SIGTERM; exit status 0, or 2 on a configuration error."""
+    shut down cleanly on SIGINT/SIGTERM; exit status 0, or 2 on a configuration error.
+
+    ``kill -USR1 PID`` prints every thread's Python stack to stderr (a node that will not stop).
+    """
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     rclpy.init(args=sys.argv if args is None else args)
     node = None
+    executor = None
     status = 0
     try:
         node = node_class()
@@ -82,5 +89,10 @@ def run_node(node_class, args=None) -> int:
     finally:
         if node is not None:
             node.destroy_node()
+        if executor is not None:
+            # wakes the pool's idle threads. A Ctrl-C that lands while the pool starts a thread
+            # (inside Thread.start) leaves that thread unknown to the interpreter's exit hook,
+            # and the process would wait for it forever (seen as a 1-in-30 hang of a stopped node)
+            executor.shutdown(timeout_sec=1.0, wait_for_threads=False)
         rclpy.try_shutdown()
     return status
