@@ -249,6 +249,41 @@ def test_stability_prior_residuals_are_the_eigenvalues_beyond_the_margin(truth):
     assert _ShootingProblem(fitter, start, start != 0, data, small, 1.0, 5, 0.0, 1.0)._stability_residuals(theta)[0].size == 0
 
 
+def test_stability_prior_has_no_derivative_for_a_defective_eigenvalue(truth, monkeypatch):
+    """An eigenvalue whose left and right eigenvectors are orthogonal (a Jordan block: a repeated
+    eigenvalue of a model whose pruned rows couple only one way) has no derivative: the prior keeps
+    its residual with a zero derivative row instead of the 1/(uᴴv) blow-up (inf or NaN there ends
+    the whole Gauss-Newton loop). The eigen-decomposition is made defective for the slowest mode."""
+    import scipy.linalg
+
+    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
+
+    model, plant = truth
+    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.0, rng_seed=2)
+    small = generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.008))
+    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
+    problem = _ShootingProblem(fitter, start, start != 0, data, small, lambda_jac=1.0, ss_stride=5,
+                               lambda_stab=4.0, stability_margin=1.0)
+    theta = start.ravel()[problem.idx] / problem.scale
+    res, jac = problem._stability_residuals(theta)
+    eig = scipy.linalg.eig
+
+    def defective(a, left, right):
+        lam, u, v = eig(a, left=True, right=True)
+        k = int(np.argmax(lam.real))
+        w = u[:, k] - v[:, k] * (v[:, k].conj() @ u[:, k])  # u's part orthogonal to v
+        u[:, k] = w / np.linalg.norm(w)
+        return lam, u, v
+
+    monkeypatch.setattr(scipy.linalg, "eig", defective)
+    res_d, jac_d = problem._stability_residuals(theta)
+    assert np.all(np.isfinite(jac_d))
+    np.testing.assert_allclose(res_d, res, rtol=1e-12)  # the residuals are the eigenvalues, as before
+    changed = np.any(jac_d != jac, axis=1)
+    assert changed.sum() == len(problem.rest_gradients)  # the slowest mode at each anchoring rest state
+    assert np.all(jac_d[changed] == 0.0) and np.any(jac[changed] != 0.0)
+
+
 def test_equilibrium_prior_residuals_are_the_field_at_the_rest_states(truth):
     """The equilibrium prior's residuals are sqrt(w)·f(x_rest, u)/σ per equation at each anchoring rest
     state (σ: the noise left in the rest mean, through the start model's Jacobian), linear in θ with

@@ -273,6 +273,8 @@ def test_pisml_pipeline_stages_and_model(train, small, test_set):
     selection = model.metadata["selection"]
     assert selection["scored_on"] == "training and small-signal records"
     assert set(selection["inconsistent_rest_points"]) <= set(est.candidates_)
+    # ... the small-signal records' rest point among them (the consistency check's points)
+    assert any(np.allclose(p["inputs"], small.trajectories[0].u[0]) for p in model.metadata["reference_points"])
     # hybrid training moves Ξ on the backbone's support and never re-opens the zeros STLSQ left
     trained = est.candidates_["trained backbone"].coefficients
     assert np.array_equal(trained != 0, est.backbone_.coefficients != 0)
@@ -585,6 +587,12 @@ def test_selection_excuses_a_fold_just_before_a_rest_point_that_the_model_passes
     assert selection["chosen"] == "distilled"
     assert selection["inconsistent_rest_points"] == {"backbone": 0, "distilled": 0, "re-fit +100 %": 1,
                                                      "re-fit +300 %": 3}
+    # where the small-signal records sat at rest there is no excuse: they are perturbations about an
+    # equilibrium they return to, and the analysis is asked for there
+    flagged = ExplicitModel(("x", "y"), ("u",), terms, np.zeros((5, 2)),
+                            {"reference_points": points[:2] + [dict(points[2], smallsignal=True)]})
+    at_small = _selected(flagged, candidates, scores, unstable_rate=1.0).metadata["selection"]
+    assert at_small["inconsistent_rest_points"]["distilled"] == 1 and at_small["chosen"] == "backbone"
     # without a finite growth rate (the default: growth unchecked) there is no time scale to drift on,
     # and a missing equilibrium counts as it always did
     assert _selected(template, candidates, scores).metadata["selection"]["chosen"] == "backbone"
@@ -595,6 +603,23 @@ def test_selection_excuses_a_fold_just_before_a_rest_point_that_the_model_passes
     assert _selected(template, candidates, scores, hold=0.04).metadata["selection"]["chosen"] == "re-fit +100 %"
     # where none beats holding, all compete as before
     assert _selected(template, candidates, scores, hold=1e-4).metadata["selection"]["chosen"] == "backbone"
+
+
+def test_reference_points_add_one_point_per_operating_point_of_the_small_signal_records(train, small):
+    from pisml_ros.data.dataset import steady_start_mean
+    from pisml_ros.ident.backbone import reference_points
+
+    own = reference_points(train, limit=3)
+    assert len(own) == 3 and [p["inputs"][0] for p in own] == sorted(p["inputs"][0] for p in own)
+    both = reference_points(train, limit=3, also=small)
+    # the small-signal records all sit at one operating point: one more point, their mean rest state
+    assert len({tuple(tr.u[0]) for tr in small}) == 1
+    added = [p for p in both if p not in own]
+    assert len(both) == 4 and len(added) == 1 and np.allclose(added[0]["inputs"], small.trajectories[0].u[0])
+    assert added[0]["smallsignal"] and not any("smallsignal" in p for p in own)
+    rests = [steady_start_mean(tr)[1] for tr in small]
+    np.testing.assert_allclose(added[0]["state"], np.mean(rests, axis=0), rtol=1e-12)
+    assert [p["inputs"][0] for p in both] == sorted(p["inputs"][0] for p in both)
 
 
 def test_hold_error_is_the_error_of_holding_each_records_first_state(plant):

@@ -100,18 +100,37 @@ def noise_moments(dataset: Dataset, terms, span: int, noise_std: np.ndarray, dra
     return noise_aa, noise_ab
 
 
-def reference_points(dataset: Dataset, limit: int = 8) -> list[dict]:
+def reference_points(dataset: Dataset, limit: int = 8, also: Dataset | None = None) -> list[dict]:
     """Steady starts of the trajectories (mean of the pre-event samples): where equilibrium
-    searches of an identified model begin (stored in the model metadata)."""
+    searches of an identified model begin, and where the selection checks that a candidate's
+    equilibrium agrees with the records that sat still (stored in the model metadata).
+
+    ``limit`` points of ``dataset``, spread over the first input; then one point for each distinct
+    operating point of ``also`` (the mean over its records: the small-signal records all sit at
+    one), so that a point where only those records sat still is never left out; those points are
+    marked ``"smallsignal": True``.
+    """
+    points = _rest_points(dataset)
+    points.sort(key=lambda p: p["inputs"][0])
+    if len(points) > limit:
+        keep = np.linspace(0, len(points) - 1, limit).round().astype(int)
+        points = [points[k] for k in keep]
+    groups: dict = {}
+    for point in _rest_points(also) if also is not None else []:
+        groups.setdefault(tuple(np.round(point["inputs"], 9)), []).append(point)
+    for group in groups.values():
+        points.append({"inputs": group[0]["inputs"],
+                       "state": np.mean([p["state"] for p in group], axis=0).tolist(), "smallsignal": True})
+    points.sort(key=lambda p: p["inputs"][0])
+    return points
+
+
+def _rest_points(dataset: Dataset) -> list[dict]:
     points = []
     for tr in dataset:
         end = steady_start_length(tr)
         if end >= 3:
             points.append({"inputs": tr.u[0].tolist(), "state": tr.x[:end].mean(axis=0).tolist()})
-    points.sort(key=lambda p: p["inputs"][0])
-    if len(points) > limit:
-        keep = np.linspace(0, len(points) - 1, limit).round().astype(int)
-        points = [points[k] for k in keep]
     return points
 
 

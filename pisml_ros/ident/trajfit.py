@@ -38,6 +38,10 @@ from ..data.dataset import steady_start_mean
 from ..model.expressions import TermSet
 from .derivatives import trajectory_windows
 
+# |uᴴv| of unit left/right eigenvectors below which the stability prior treats an eigenvalue as
+# defective (no derivative): its first-order perturbation 1/|uᴴv| would exceed 1e6
+DEFECTIVE_OVERLAP = 1e-6
+
 
 def blas_threads(limit: int | None):
     """A context with at most ``limit`` threads in the BLAS pools (threadpoolctl; without it, or
@@ -498,7 +502,15 @@ class _ShootingProblem:
             lam, left, right = scipy.linalg.eig(a, left=True, right=True)
             for i in np.flatnonzero(lam.real > -self.stability_margin):
                 u, v = left[:, i], right[:, i]
-                d_re = np.real(np.outer(u.conj(), v) / (u.conj() @ v))  # ∂Re λ / ∂A
+                overlap = u.conj() @ v  # scipy's eigenvectors have unit norm: |uᴴv| = 1 / condition
+                if abs(overlap) < DEFECTIVE_OVERLAP:
+                    # a defective eigenvalue (a Jordan block: a state whose equation lost its terms
+                    # gives a repeated 0) has no derivative; the residual still counts in the cost,
+                    # but an inf/NaN row would end the whole Gauss-Newton loop (_finite)
+                    rows.append(np.zeros(self.idx.size))
+                    res.append(self.sqrt_ls * (lam[i].real + self.stability_margin))
+                    continue
+                d_re = np.real(np.outer(u.conj(), v) / overlap)  # ∂Re λ / ∂A
                 # A[j, k] = Σ_t c[t, j]·grad[t, k]: ∂A[row, k] / ∂θ = scale·grad[term, k]
                 rows.append(self.sqrt_ls * self.scale * np.einsum("ik,ik->i", d_re[self.row_of.numpy()],
                                                                   grad[self.term_of.numpy()]))
