@@ -215,25 +215,33 @@ def test_a_refinement_goes_on_while_its_free_run_error_falls():
     assert stops_at([1.0, 1.2, 1.3], 1.5) is None
 
 
-def test_stability_prior_residuals_are_the_eigenvalues_beyond_the_margin(truth):
-    """At the small-signal operating point the prior's residuals are sqrt(w)·(Re λ + margin) of the
-    eigenvalues of the model's Jacobian there with Re λ > -margin, and its θ-derivatives match
-    central differences (first-order eigenvalue perturbation)."""
-    from pisml_ros.data.dataset import steady_start_length
+def _stability_prior_case(truth):
+    """The stability prior's shooting problem at the true coefficients: two clean training records
+    and two small-signal records at ug 0.8, weight 4, margin 1 1/s (the plant's slowest pair there is
+    -0.73 ± 1.7j: both count); the problem, θ, and (fitter, start, data, small)."""
     from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
 
     model, plant = truth
     data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.0, rng_seed=2)
     small = generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.008))
     fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
-    # the plant's slowest pair at ug 0.8 is -0.73 ± 1.7j: a margin of 1 1/s makes both count
     problem = _ShootingProblem(fitter, start, start != 0, data, small, lambda_jac=1.0, ss_stride=5,
                                lambda_stab=4.0, stability_margin=1.0)
-    theta = start.ravel()[problem.idx] / problem.scale
+    return problem, start.ravel()[problem.idx] / problem.scale, (fitter, start, data, small)
+
+
+def test_stability_prior_residuals_are_the_eigenvalues_beyond_the_margin(truth):
+    """At the small-signal operating point the prior's residuals are sqrt(w)·(Re λ + margin) of the
+    eigenvalues of the model's Jacobian there with Re λ > -margin, and its θ-derivatives match
+    central differences (first-order eigenvalue perturbation)."""
+    from pisml_ros.data.dataset import steady_start_length
+    from pisml_ros.ident.trajfit import _ShootingProblem
+
+    problem, theta, (fitter, start, data, small) = _stability_prior_case(truth)
     res, jac = problem._stability_residuals(theta)
     tr = next(iter(small))
     rest = tr.x[:steady_start_length(tr)].mean(axis=0)
-    eig = np.linalg.eigvals(model.jacobian(rest, tr.u[0]))
+    eig = np.linalg.eigvals(truth[0].jacobian(rest, tr.u[0]))
     expected = np.sort(2.0 * (eig.real[eig.real > -1.0] + 1.0))
     assert res.size == 2
     np.testing.assert_allclose(np.sort(res), expected, rtol=1e-8)
@@ -256,15 +264,7 @@ def test_stability_prior_has_no_derivative_for_a_defective_eigenvalue(truth, mon
     the whole Gauss-Newton loop). The eigen-decomposition is made defective for the slowest mode."""
     import scipy.linalg
 
-    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
-
-    model, plant = truth
-    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.0, rng_seed=2)
-    small = generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.008))
-    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights)
-    problem = _ShootingProblem(fitter, start, start != 0, data, small, lambda_jac=1.0, ss_stride=5,
-                               lambda_stab=4.0, stability_margin=1.0)
-    theta = start.ravel()[problem.idx] / problem.scale
+    problem, theta, _ = _stability_prior_case(truth)
     res, jac = problem._stability_residuals(theta)
     eig = scipy.linalg.eig
 
