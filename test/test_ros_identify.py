@@ -265,7 +265,7 @@ def test_a_bag_recorded_from_the_live_graph_replays_to_the_same_model(probe, tmp
         meas = None
         # the bag holds the samples as they travelled, and the model
         recorded, original = read_dataset(bag), read_csv(clean_train)
-        assert len(recorded) == len(original)
+        assert len(recorded) == len(original), ([tr.traj_id for tr in recorded], [tr.traj_id for tr in original])
         for a, b in zip(recorded, original):
             assert np.array_equal(a.x, b.x) and np.array_equal(a.u, b.u)
         from rosbags.rosbag2 import Reader

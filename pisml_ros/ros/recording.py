@@ -191,6 +191,7 @@ def record(topics, out, duration: float | None = None, storage: str = "mcap", lo
                 rclpy.spin_once(node, timeout_sec=0.05)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        _drain(node, recorder)
         if recorder.missing():
             log(f"never saw a publisher of {recorder.missing()} (not recorded)")
         recorder.close()
@@ -204,6 +205,24 @@ def record(topics, out, duration: float | None = None, storage: str = "mcap", lo
         signal.signal(signal.SIGTERM, old_term)
         node.destroy_node()
         rclpy.try_shutdown()
+
+
+def _drain(node, recorder, idle: float = 0.2, limit: float = 5.0) -> None:
+    """Write the messages that already reached this process before the bag closes: a stop ends the
+    listening, not the delivery of what waits in the subscriptions' queues (a recorder starved of
+    CPU by a training beside it lags behind the graph). Until ``idle`` seconds bring nothing, at
+    most ``limit`` seconds; a second Ctrl-C ends it."""
+    if not rclpy.ok():
+        return
+    deadline = time.monotonic() + limit
+    try:
+        while time.monotonic() < deadline:
+            before = sum(recorder.counts.values())
+            rclpy.spin_once(node, timeout_sec=idle)
+            if sum(recorder.counts.values()) == before:
+                return
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
 
 
 def _raise_interrupt(signum, frame):
