@@ -501,6 +501,7 @@ class _ShootingProblem:
                 continue
             lam, left, right = scipy.linalg.eig(a, left=True, right=True)
             for i in np.flatnonzero(lam.real > -self.stability_margin):
+                res.append(self.sqrt_ls * (lam[i].real + self.stability_margin))
                 u, v = left[:, i], right[:, i]
                 overlap = u.conj() @ v  # scipy's eigenvectors have unit norm: |uᴴv| = 1 / condition
                 if abs(overlap) < DEFECTIVE_OVERLAP:
@@ -508,13 +509,11 @@ class _ShootingProblem:
                     # gives a repeated 0) has no derivative; the residual still counts in the cost,
                     # but an inf/NaN row would end the whole Gauss-Newton loop (_finite)
                     rows.append(np.zeros(self.idx.size))
-                    res.append(self.sqrt_ls * (lam[i].real + self.stability_margin))
                     continue
                 d_re = np.real(np.outer(u.conj(), v) / overlap)  # ∂Re λ / ∂A
                 # A[j, k] = Σ_t c[t, j]·grad[t, k]: ∂A[row, k] / ∂θ = scale·grad[term, k]
                 rows.append(self.sqrt_ls * self.scale * np.einsum("ik,ik->i", d_re[self.row_of.numpy()],
                                                                   grad[self.term_of.numpy()]))
-                res.append(self.sqrt_ls * (lam[i].real + self.stability_margin))
         if not res:
             return np.zeros(0), np.zeros((0, self.idx.size))
         return np.array(res), np.array(rows)
