@@ -560,7 +560,7 @@ def test_sparse_refit_recovers_the_structure_of_clean_records():
         sparse_refit(train, terms, budgets=[1.0], span=399)
 
 
-def test_selection_excuses_a_fold_just_before_a_rest_point_that_the_model_passes_slowly():
+def test_selection_excuses_a_fold_just_before_an_edge_rest_point_that_the_model_passes_slowly():
     from pisml_ros.analysis.operating_point import rest_drift
     from pisml_ros.ident.estimators import _selected
 
@@ -593,6 +593,17 @@ def test_selection_excuses_a_fold_just_before_a_rest_point_that_the_model_passes
                             {"reference_points": points[:2] + [dict(points[2], smallsignal=True)]})
     at_small = _selected(flagged, candidates, scores, unstable_rate=1.0).metadata["selection"]
     assert at_small["inconsistent_rest_points"]["distilled"] == 1 and at_small["chosen"] == "backbone"
+    # a hole between two points with an equilibrium is no fold at the branch's edge: never excused.
+    # y' = 4 (u - 0.5)**2 - 1e-4 - y**2 has an equilibrium at u = 0 and u = 1, none at u = 0.5,
+    # where it passes y = 0.01 as slowly as the fold above
+    from pisml_ros.ident.estimators import _inconsistent_points
+    hole = ExplicitModel(("x", "y"), ("u",), terms + ["u**2"],
+                         np.column_stack([[1.0, -1, 0, 0, 0, 0], [0.9999, 0, -4, -1, 0, 4]]), {})
+    around = [{"inputs": [0.0], "state": [1.0, 1.0]}, {"inputs": [0.5], "state": [1.0, 0.01]},
+              {"inputs": [1.0], "state": [1.0, 1.0]}]
+    assert rest_drift(hole, around[1], 1.0, 0.1) < 1e-3
+    assert _inconsistent_points("hole", {"hole": hole}, around, {}, 1.0) == 1
+    assert _inconsistent_points("fold", {"fold": fold}, points, {}, 1.0) == 0
     # without a finite growth rate (the default: growth unchecked) there is no time scale to drift on,
     # and a missing equilibrium counts as it always did
     assert _selected(template, candidates, scores).metadata["selection"]["chosen"] == "backbone"
