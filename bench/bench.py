@@ -120,6 +120,33 @@ def spurious_text(row) -> str:
     return ", ".join(f"{g}" + (" (in data)" if low <= g <= high else "") for g in points)
 
 
+# operating points inside the protocol's data (records rest at ug 0.8-1.2) where the reported
+# equilibrium of a model is compared with the plant's
+OPERATING_POINT_GRID = (0.8, 1.0, 1.1)
+
+
+def operating_point_errors(model, plant, grid=OPERATING_POINT_GRID) -> dict:
+    """Largest |model − plant| over ``grid`` of the equilibrium's active and reactive power (the
+    filtered powers Pf and Qf: p and q at rest) and capacitor voltage magnitude, in p.u., with the
+    model's equilibrium found as the analysis finds it (from its stored reference points).
+    None where the model has no equilibrium at a point of the grid."""
+    names = list(plant.state_names) if hasattr(plant, "state_names") else list(model.state_names)
+    k = {n: names.index(n) for n in ("Pf", "Qf", "vc_d", "vc_q")}
+    worst = {"dp": 0.0, "dq": 0.0, "dv": 0.0}
+    for g in grid:
+        xp = plant.equilibrium(g, 0.0)
+        try:
+            xm = np.asarray(model.equilibrium(g, 0.0), dtype=float)
+        except Exception:
+            return {"dp": None, "dq": None, "dv": None}
+        if not np.all(np.isfinite(xm)):
+            return {"dp": None, "dq": None, "dv": None}
+        worst["dp"] = max(worst["dp"], abs(xm[k["Pf"]] - xp[k["Pf"]]))
+        worst["dq"] = max(worst["dq"], abs(xm[k["Qf"]] - xp[k["Qf"]]))
+        worst["dv"] = max(worst["dv"], abs(np.hypot(xm[k["vc_d"]], xm[k["vc_q"]]) - np.hypot(xp[k["vc_d"]], xp[k["vc_q"]])))
+    return {key: float(v) for key, v in worst.items()}
+
+
 def finite(x):
     return None if x is None or not np.isfinite(x) else float(x)
 
@@ -153,6 +180,8 @@ def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, lab
                                 and model_spectra[g].real.max() > 0 > truth_spectra[g].real.max()]
     row["missed_unstable"] = [g for g in grid if truth_spectra[g].real.max() > 0
                               and (model_spectra[g] is None or model_spectra[g].real.max() <= 0)]
+    operating = operating_point_errors(est.model_, plant)
+    row.update(op_dp=operating["dp"], op_dq=operating["dq"], op_dv=operating["dv"])
     if est.explicit_model_ is not None:
         row["rd_terms_found"] = rd_terms_found(est.explicit_model_)
         # the grid voltages the model was identified on: a spurious mode inside them contradicts data
@@ -184,15 +213,18 @@ def write_markdown(results, path):
              "and small-signal records span (elsewhere the model extrapolates).", "",
              "Rd terms: how many of the six current×current monomials that vo = vc + Rd·(il − ig) brings "
              "into d(Pf)/dt and d(Qf)/dt the explicit model has.", "",
+             "ΔQ / ΔP op.: the largest error of the model's operating point (its equilibrium, as the analysis "
+             f"finds it) in reactive / active power over ug {', '.join(map(str, OPERATING_POINT_GRID))} against "
+             "the plant's, p.u. ('—': no equilibrium at one of them).", "",
              "| plant | noise | method | IOD % | OOD % | W(ug 0.8) | W mean 0.2–1.2 | spurious unstable | "
-             "nonzero params | Rd terms | time s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "ΔQ / ΔP op. | nonzero params | Rd terms | time s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results["runs"]:
         if r.get("sweep") != "main":
             continue
         lines.append(f"| {r['plant']} | {r['noise']} | {r['method']} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
                      f"{fmt(r.get('wasserstein_ug08'))} | {fmt(r.get('wasserstein_mean'))} | "
-                     f"{spurious_text(r)} | "
+                     f"{spurious_text(r)} | {fmt(r.get('op_dq'), 2)} / {fmt(r.get('op_dp'), 2)} | "
                      f"{r.get('n_parameters', '—')} | {fmt(r.get('rd_terms_found')) + ('/6' if 'rd_terms_found' in r else '')} | {fmt(r.get('seconds'))} |")
     hyb = [r for r in results["runs"] if r.get("sweep_hybrid") and r.get("sweep") == "main"]
     if hyb:
@@ -213,18 +245,20 @@ def write_markdown(results, path):
         rows = [r for r in results["runs"] if r.get("sweep") == key]
         if rows:
             lines += ["", f"## {title} (standard plant, pisml)", "",
-                      f"| {key} | IOD % | OOD % | W(ug 0.8) | spurious unstable | parameters | time s |",
-                      "|---|---|---|---|---|---|---|"]
+                      f"| {key} | IOD % | OOD % | W(ug 0.8) | spurious unstable | ΔQ / ΔP op. | parameters | time s |",
+                      "|---|---|---|---|---|---|---|---|"]
             for r in rows:
                 spurious = spurious_text(r)
                 lines.append(f"| {r[key]} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
-                             f"{fmt(r.get('wasserstein_ug08'))} | {spurious} | {r.get('n_parameters', '—')} | "
+                             f"{fmt(r.get('wasserstein_ug08'))} | {spurious} | "
+                             f"{fmt(r.get('op_dq'), 2)} / {fmt(r.get('op_dp'), 2)} | {r.get('n_parameters', '—')} | "
                              f"{fmt(r.get('seconds'))} |")
     spread = recording_spread(results["runs"])
     if spread:
         lines += ["", f"Over the {spread['recordings']} recordings at 40 dB (recording 0 and the table above), median / worst: "
                   f"IOD {fmt(spread['iod_median'])} / {fmt(spread['iod_worst'])} %, OOD {fmt(spread['ood_median'])} / "
-                  f"{fmt(spread['ood_worst'])} %, time {fmt(spread['seconds_median'])} / {fmt(spread['seconds_worst'])} s; "
+                  f"{fmt(spread['ood_worst'])} %, time {fmt(spread['seconds_median'])} / {fmt(spread['seconds_worst'])} s, "
+                  f"operating-point ΔQ {fmt(spread['op_dq_median'], 2)} / {fmt(spread['op_dq_worst'], 2)} p.u.; "
                   f"within IOD ≤ 0.5 % and OOD ≤ 1.0 %: {spread['within_targets']} of {spread['recordings']}; with a "
                   f"spurious unstable mode or failed: {spread['spurious']} (a spurious mode inside the data's ug "
                   f"range: {spread.get('spurious_in_data', '—')})."]
@@ -247,7 +281,7 @@ def recording_spread(runs: list) -> dict | None:
         return [float(r[key]) if r.get(key) is not None and math.isfinite(float(r[key])) else math.inf for r in rows]
 
     out = {"recordings": len(rows)}
-    for key in ("iod", "ood", "seconds"):
+    for key in ("iod", "ood", "seconds", "op_dq"):
         out[f"{key}_median"] = float(np.median(values(key)))
         out[f"{key}_worst"] = max(values(key))
     out["within_targets"] = sum(i <= 0.5 and o <= 1.0 for i, o in zip(values("iod"), values("ood")))
@@ -289,7 +323,7 @@ def main(argv=None) -> int:
                     figure_spectra[method] = np.array([complex(a, b) for a, b in row["_spectrum_ug08"]])
                 print(f"{plant_name:10s} {noise:6s} {method:12s} IOD {fmt(row.get('iod')):>8} % OOD "
                       f"{fmt(row.get('ood')):>8} % W0.8 {fmt(row.get('wasserstein_ug08')):>8} "
-                      f"params {row.get('n_parameters', '—'):>6} {row['seconds']:6.1f} s"
+                      f"dQ op. {fmt(row.get('op_dq'), 2):>7} params {row.get('n_parameters', '—'):>6} {row['seconds']:6.1f} s"
                       f"{'  ERROR ' + row['error'] if 'error' in row else ''}", flush=True)
             plot_spectra(figure_spectra, fig_dir / f"spectra_{plant_name}_{noise.replace(' ', '')}.png",
                          title=f"eigenvalues at ug 0.8 ({plant_name}, {noise})")
