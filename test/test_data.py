@@ -223,3 +223,30 @@ def test_steady_start_is_found_with_clean_and_noisy_inputs():
     assert steady_start_length(noisy) == 150
     flat = Trajectory(0, clean.t, clean.x, np.ones((400, 2)))
     assert steady_start_length(flat) == 400
+
+
+def test_a_steady_start_counts_as_rest_only_where_the_states_sit_still():
+    from pisml_ros.data.dataset import rest_start_length, steady_start_mean
+
+    rng = np.random.default_rng(1)
+    t = np.arange(400) * 1e-4
+    u = np.ones((400, 2)) * [1.0, 0.0]
+    u[150:, 0] = 0.9  # inputs constant over the first 150 samples
+    at_rest = np.column_stack([np.full(400, 0.5), np.full(400, -0.2)])
+    clean = Trajectory(0, t, at_rest, u)
+    assert rest_start_length(clean) == 150 and np.allclose(steady_start_mean(clean)[1], [0.5, -0.2])
+    noisy = Trajectory(0, t, at_rest + 0.005 * rng.standard_normal(at_rest.shape), u)
+    assert rest_start_length(noisy) == 150
+    assert np.allclose(steady_start_mean(noisy)[1], [0.5, -0.2], atol=3 * 0.005 / np.sqrt(150) * 2)
+    # a record that begins inside a transient (the LCL ring, ~7 samples per period, and a slow
+    # drift) has constant inputs too, but it is not at rest: clean or under noise
+    ring = 0.05 * np.exp(-t / 0.004) * np.sin(2 * np.pi * 1500 * t)
+    drift = 0.01 * (1 - np.exp(-t / 0.02))
+    moving = at_rest + np.column_stack([ring, drift])
+    for x in (moving, moving + 0.005 * rng.standard_normal(moving.shape)):
+        transient = Trajectory(0, t, x, u)
+        assert rest_start_length(transient) == 0 and steady_start_mean(transient) == (0, None)
+    # too short a steady start to tell
+    u_short = u.copy()
+    u_short[12:, 0] = 0.9
+    assert rest_start_length(Trajectory(0, t, at_rest, u_short)) == 0

@@ -20,7 +20,7 @@ import numpy as np
 import scipy.optimize
 
 from ..data import Dataset
-from ..data.dataset import steady_start_length
+from ..data.dataset import rest_start_length
 from ..ident.noise import estimate_noise_std
 from ..signals import SCORED_STATES
 from .catalogue import Candidate, catalogue
@@ -47,14 +47,15 @@ class GapSettings:
 
 
 def initial_states(data: Dataset) -> tuple[list[np.ndarray], np.ndarray]:
-    """Measured initial state of each trajectory: the mean of its steady start where it has one.
+    """Measured initial state of each trajectory: the mean of its steady start where it sat at rest
+    there (:func:`~pisml_ros.data.dataset.rest_start_length`), else its first sample.
 
     Returns the states and, per trajectory, how many samples were averaged.
     """
     out, counts = [], []
     for tr in data:
-        k0 = steady_start_length(tr)
-        count = min(k0, 20) if k0 >= 5 else 1
+        k0 = rest_start_length(tr)
+        count = min(k0, 20) if k0 else 1
         out.append(tr.x[:count].mean(axis=0))
         counts.append(count)
     return out, np.array(counts, dtype=float)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..data import Dataset
-from ..data.dataset import steady_start_length
+from ..data.dataset import rest_start_length
 from ..model import ExplicitModel
 from ..model.expressions import term_set
 from .derivatives import integral_form
@@ -101,7 +101,8 @@ def noise_moments(dataset: Dataset, terms, span: int, noise_std: np.ndarray, dra
 
 
 def reference_points(dataset: Dataset, limit: int = 8, also: Dataset | None = None) -> list[dict]:
-    """Steady starts of the trajectories (mean of the pre-event samples): where equilibrium
+    """Rest starts of the trajectories (mean of the pre-event samples where the record sat at rest,
+    :func:`~pisml_ros.data.dataset.rest_start_length`): where equilibrium
     searches of an identified model begin, and where the selection checks that a candidate's
     equilibrium agrees with the records that sat still (stored in the model metadata).
 
@@ -128,8 +129,8 @@ def reference_points(dataset: Dataset, limit: int = 8, also: Dataset | None = No
 def _rest_points(dataset: Dataset) -> list[dict]:
     points = []
     for tr in dataset:
-        end = steady_start_length(tr)
-        if end >= 3:
+        end = rest_start_length(tr)
+        if end:
             points.append({"inputs": tr.u[0].tolist(), "state": tr.x[:end].mean(axis=0).tolist()})
     return points
 

@@ -4,14 +4,15 @@ from __future__ import annotations
 import numpy as np
 
 from ..data import Dataset
-from ..data.dataset import steady_start_length
+from ..data.dataset import rest_start_length
 
 
 def estimate_noise_std(dataset: Dataset, min_samples: int = 8) -> np.ndarray:
     """Per-state noise standard deviation.
 
-    Where a trajectory starts in steady state (inputs constant over its first
-    samples), the first differences there are pure noise: σ = std(Δx)/√2. Without
+    Where a trajectory starts at rest (:func:`~pisml_ros.data.dataset.rest_start_length`:
+    inputs constant and the states still), the first differences there are pure noise:
+    σ = std(Δx)/√2. Without
     such a segment, the second difference bounds it from above: σ ≈ std(Δ²x)/√6.
 
     Returns
@@ -20,7 +21,7 @@ def estimate_noise_std(dataset: Dataset, min_samples: int = 8) -> np.ndarray:
     """
     flat_diffs = []
     for tr in dataset:
-        end = steady_start_length(tr)
+        end = rest_start_length(tr)
         if end >= min_samples:
             flat_diffs.append(np.diff(tr.x[:end], axis=0))
     if flat_diffs:
