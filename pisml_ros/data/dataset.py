@@ -152,7 +152,7 @@ def rest_start_length(traj: Trajectory, min_samples: int = 20, lags: int = 4, ma
     are uncorrelated from one sample to the next; a transient's are not (a drift, and the LCL
     oscillation sampled ~7 times per period). The steady start counts where, for every state, the
     Box-Pierce statistic n·Σ r_k² of the autocorrelations r_1..r_lags is at most ``max_statistic``
-    (white noise: χ² with ``lags`` degrees of freedom, 30 is beyond its 1e-5 quantile), or the
+    (white noise: about χ² with ``lags`` degrees of freedom; with 4, above 30 once in 2e5), or the
     state does not vary at all (clean records at rest); shorter than ``min_samples`` it cannot be
     told and counts as none. Measured: 448 noisy protocol records at rest (20, 40, 60 dB; their
     steady starts 22-136 samples) at most 18.2; clean records cut to begin inside a transient, at
