@@ -130,8 +130,7 @@ def operating_point_errors(model, plant, grid=OPERATING_POINT_GRID) -> dict:
     filtered powers Pf and Qf: p and q at rest) and capacitor voltage magnitude, in p.u., with the
     model's equilibrium found as the analysis finds it (from its stored reference points).
     None where the model has no equilibrium at a point of the grid."""
-    names = list(plant.state_names) if hasattr(plant, "state_names") else list(model.state_names)
-    k = {n: names.index(n) for n in ("Pf", "Qf", "vc_d", "vc_q")}
+    k = {n: list(plant.state_names).index(n) for n in ("Pf", "Qf", "vc_d", "vc_q")}
     worst = {"dp": 0.0, "dq": 0.0, "dv": 0.0}
     for g in grid:
         xp = plant.equilibrium(g, 0.0)
