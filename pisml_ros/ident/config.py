@@ -232,7 +232,10 @@ class IdentConfig:
     # equilibria where 40 ms of data hardly move them. Measured (40 dB, recordings 0 / 1 / 2, one
     # start, IOD / OOD %): weight 0: 0.22 / 0.55, 0.24 / 2.16, 0.41 / 1.45 (spurious unstable at ug
     # 0.4); 0.01: 0.32 / 0.51, 0.29 / 0.49, 0.47 / 2.13, none spurious; 1: 0.48 / 3.02, 0.30 / 2.59,
-    # 0.38 / 1.82; 0.03: recording 2 0.81 / 1.49
+    # 0.38 / 1.82; 0.03: recording 2 0.81 / 1.49. Stop 28 (the current engine, recordings 0-4, IOD /
+    # OOD %, operating-point ΔQ p.u. as bench.operating_point_errors): 0.1: 0.34 / 1.40, 0.73 / 3.04,
+    # 0.61 / 0.96 (spurious at ug 0.2), 0.35 / 1.21, 0.21 / 0.72; ΔQ 0.002, 0.030, 0.040, 0.060,
+    # 0.002 (0.01: 0.051, 0.012, 0.036, 0.048, 0.035)
     refine_equilibrium_weight: float = 0.01
     # on noisy data, the polish's equilibrium prior in states instead (0: as in the other stages): at
     # each rest state the distance to the model's equilibrium next to it (J⁻¹f, a Newton step) in
