@@ -160,6 +160,12 @@ def cmd_identify(args) -> int:
         print(f"  identified on {covered}" + (
             f"; chosen: {selection['chosen']} (free-run error on the records "
             f"{selection['training_error_pct'][selection['chosen']]:.3g} %)" if selection.get("chosen") else ""))
+    training = model.metadata.get("training") or {}
+    if "records_at_rest" in training:
+        resting, records = training["records_at_rest"], training["trajectories"]
+        print(f"  training records starting at rest: {resting} of {records}" + (
+            "" if resting else " (constant inputs and still states before the first input change): the "
+            "selection's equilibrium check and the stability prior rest on the small-signal records alone"))
     if args.equations:
         for line in model.equations(digits=5):
             print("  " + line)

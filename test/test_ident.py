@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum_wasserstein
-from pisml_ros.data import read_dataset, write_dataset
+from pisml_ros.data import Dataset, Trajectory, read_dataset, write_dataset
 from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
 from pisml_ros.ident.backbone import fit_backbone, noise_moments, sparse_regression
 from pisml_ros.ident.library import coupling_separation, physics_library
@@ -349,9 +349,21 @@ def test_identify_simulate_analyse_cli(tmp_path, train, capsys):
     out = tmp_path / "model.json"
     assert main(["identify", "--data", str(data), "--method", "mod-sindy", "--out", str(out), "--quiet"]) == 0
     low, high = min(tr.u[:, 0].min() for tr in train), max(tr.u[:, 0].max() for tr in train)
-    assert f"identified on ug {low:.4g}-{high:.4g}\n" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"identified on ug {low:.4g}-{high:.4g}\n" in printed
+    assert f"training records starting at rest: {len(train)} of {len(train)}\n" in printed
     model = ExplicitModel.load(out)
     assert model.metadata["identification"]["method"] == "mod-sindy"
+    assert model.metadata["training"]["records_at_rest"] == len(train)
+    # records cut to begin 2 ms into their first transient: none at rest, and the user is told
+    cut = []
+    for tr in train:
+        k0 = int(np.flatnonzero(np.any(np.diff(tr.u, axis=0) != 0, axis=1))[0]) + 21
+        cut.append(Trajectory(tr.traj_id, tr.t[k0:] - tr.t[k0], tr.x[k0:], tr.u[k0:]))
+    moving = write_dataset(Dataset(train.state_names, train.input_names, cut), tmp_path / "moving.csv")
+    assert main(["identify", "--data", str(moving), "--method", "mod-sindy", "--out", str(out), "--quiet"]) == 0
+    assert f"training records starting at rest: 0 of {len(train)} (constant inputs" in capsys.readouterr().out
+    assert ExplicitModel.load(out).metadata["training"]["records_at_rest"] == 0
     pred = tmp_path / "pred.csv"
     assert main(["simulate", "--model", str(out), "--data", str(data), "--out", str(pred)]) == 0
     assert len(read_dataset(pred)) == len(train)
