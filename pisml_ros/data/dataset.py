@@ -170,6 +170,12 @@ def rest_start_length(traj: Trajectory, min_samples: int = 20, lags: int = 4, ma
     return end if np.all(flat | (statistic <= max_statistic)) else 0
 
 
+def records_at_rest(dataset) -> int:
+    """How many of a dataset's records start at rest (:func:`rest_start_length`): their rest states
+    anchor the identification's equilibrium checks and priors."""
+    return sum(rest_start_length(tr) > 0 for tr in dataset)
+
+
 def steady_start_mean(traj: Trajectory, min_samples: int = 5):
     """Length and mean state of a trajectory's steady start where the record sat at rest (see
     :func:`rest_start_length`), or ``(0, None)`` when it has none: fewer than ``min_samples``

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..analysis.operating_point import growth_rates_at_points, rest_drift
 from ..data import Dataset
-from ..data.dataset import concat_datasets, rest_start_length, steady_start_mean
+from ..data.dataset import concat_datasets, records_at_rest, steady_start_mean
 from ..model import ExplicitModel
 from ..model.expressions import term_set
 from .backbone import fit_backbone, reference_points
@@ -91,8 +91,7 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
     return {"method": method, "config": config.to_dict(), "reference_points": reference_points(train, also=smallsignal),
             "training": {"trajectories": len(train), "samples": train.n_samples,
                          "smallsignal_trajectories": len(smallsignal) if smallsignal is not None else 0,
-                         # their rest states anchor the selection's equilibrium check and the priors
-                         "records_at_rest": sum(rest_start_length(tr) > 0 for tr in train),
+                         "records_at_rest": records_at_rest(train),
                          "input_range": input_range}}
 
 

@@ -12,8 +12,8 @@ def estimate_noise_std(dataset: Dataset, min_samples: int = 8) -> np.ndarray:
 
     Where a trajectory starts at rest (:func:`~pisml_ros.data.dataset.rest_start_length`:
     inputs constant and the states still), the first differences there are pure noise:
-    σ = std(Δx)/√2. Without
-    such a segment, the second difference bounds it from above: σ ≈ std(Δ²x)/√6.
+    σ = std(Δx)/√2. Without such a segment, the second difference bounds it from above:
+    σ ≈ std(Δ²x)/√6.
 
     Returns
     -------

@@ -42,7 +42,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from ..data import DataError, read_dataset, validate_batch  # noqa: E402
-from ..data.dataset import rest_start_length  # noqa: E402
+from ..data.dataset import records_at_rest  # noqa: E402
 from ..data.stream import TrajectoryBuffer  # noqa: E402
 from ..fileio import atomic_write_text, json_default  # noqa: E402
 from ..ident import IdentConfig  # noqa: E402
@@ -201,8 +201,7 @@ class IdentifierNode(Node):
             self.job = job
         self.get_logger().info(f"run {job.model_id}: training {method} on {origin}, {data.n_samples} samples"
                                f"{', with small-signal data' if self.smallsignal is not None else ''}")
-        if not any(rest_start_length(tr) for tr in data):
-            # their rest states anchor the selection's equilibrium check and the stability prior
+        if not records_at_rest(data):
             self.get_logger().warning(f"run {job.model_id}: none of the {len(data)} training records starts at "
                                       "rest (constant inputs and still states before the first input change)")
         job.thread = threading.Thread(target=self._run_job, args=(job,), daemon=True, name=f"identify-{job.run}")
