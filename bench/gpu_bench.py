@@ -28,9 +28,14 @@ def main(argv=None) -> int:
     parser.add_argument("--snr", type=float, default=None, help="measurement noise (dB); default clean")
     parser.add_argument("--devices", default="cpu,cuda")
     parser.add_argument("--out", default=str(BENCH / "gpu_results.json"))
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads (default torch's own: one per core)")
     args = parser.parse_args(argv)
 
     import torch
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
 
     from bench import PLANTS, datasets  # the identification benchmark's protocol data, same seeds
     from pisml_ros.analysis.metrics import protocol_errors

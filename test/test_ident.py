@@ -528,6 +528,37 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     assert "growing_windows" not in one_stage["refined"].metadata["refinement"]
 
 
+def test_refinement_shares_its_windows_out_in_at_most_two_parts(monkeypatch):
+    # on a many-core machine torch has a thread per core, but parts past two contend for the GIL (a
+    # 16-core machine: 0.85 / 0.76 / 2.9 / 6.1 s per evaluation in 1 / 2 / 8 / 16 parts)
+    import threading
+
+    import torch
+
+    from pisml_ros.ident import IdentConfig
+    from pisml_ros.ident.estimators import refine_explicit
+    from pisml_ros.ident.trajfit import SHOOTING_PARTS_MAX
+    from pisml_ros.model import ExplicitModel
+
+    train, truth = _oscillator_data(4, lambda rng: [(int(rng.integers(50, 350)), rng.uniform(0.5, 1.5))], seed=1)
+    model = ExplicitModel(("xa", "xb"), ("v",), ["xa", "xb", "v"], truth * 1.1)
+    cfg = IdentConfig.from_mapping({"refine_growing_windows": "10", "refine_growing_evaluations": "3",
+                                    "refine_polish_windows": "", "refine_polish_evaluations": "",
+                                    "refine_prune_budgets": ""})
+    seen = []
+
+    def progress(fraction, losses):
+        seen.append(sum(t.name.startswith("pisml-shoot") for t in threading.enumerate()))
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(6)
+    try:
+        refine_explicit(model, train, None, cfg, progress=progress)
+    finally:
+        torch.set_num_threads(threads)
+    assert seen and 0 < max(seen) <= SHOOTING_PARTS_MAX == 2, seen
+
+
 def test_integral_form_spline_quadrature_and_input_jumps():
     from pisml_ros.data import Dataset, Trajectory
     from pisml_ros.ident.derivatives import input_jumps, integral_form

@@ -28,7 +28,7 @@ from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
 from .library import (centred_terms, coupling_separation, extended_library, filter_row_mask, integrator_row_mask,
                       monomial_basis, physics_library, rebased, term_degrees)
-from .trajfit import blas_threads
+from .trajfit import SHOOTING_PARTS_MAX, blas_threads
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
 
@@ -887,8 +887,9 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
 
     import torch
 
-    # the windows shared out over torch's threads (one where the caller runs fits side by side)
-    threads = torch.get_num_threads()
+    # the windows shared out over torch's threads (one where the caller runs fits side by side), at
+    # most SHOOTING_PARTS_MAX of them (the parts contend for the GIL)
+    threads = min(torch.get_num_threads(), SHOOTING_PARTS_MAX)
 
     def make_fitter(window, max_windows, substeps=2):
         return TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=window,

@@ -42,6 +42,14 @@ from .derivatives import trajectory_windows
 # defective (no derivative): its first-order perturbation 1/|uᴴv| would exceed 1e6
 DEFECTIVE_OVERLAP = 1e-6
 
+# the most parts the refinement shares its shooting windows out in (TrajectoryFitter's threads): each
+# part launches many small torch operations and holds the GIL between them, so more parts contend
+# for it. Measured with bench/threads_bench.py (40 dB protocol data, windows of 25, seconds per cost
+# evaluation): 2 cores 0.76 / 0.58 / 0.69 / 0.84 s in 1 / 2 / 3 / 4 parts; 16 cores (a lent H200
+# machine) 0.85 / 0.76 / 0.82 / 1.33 / 2.28 / 2.89 / 6.07 s in 1 / 2 / 3 / 4 / 6 / 8 / 16 parts. There,
+# torch's default of a part per core made a 40 dB identification take over 420 s (71 s in 2 parts).
+SHOOTING_PARTS_MAX = 2
+
 
 def blas_threads(limit: int | None):
     """A context with at most ``limit`` threads in the BLAS pools (threadpoolctl; without it, or
