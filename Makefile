@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: env demo test test-fast bags bench bench-quick bench-gap bench-oracle clean
+.PHONY: env demo test test-fast bags bench bench-quick bench-gap bench-oracle bench-plants clean
 
 env:
 	@bash scripts/bootstrap_env.sh
@@ -38,6 +38,11 @@ bench-quick: env
 # gap workflow benchmark (quick matrix, ~10 min on 2 cores): bench/gap_results.json, bench/GAP_RESULTS.md
 bench-gap: env
 	$(PY) bench/gap_bench.py --quick
+
+# PISML and Mod-SINDy on the default inverter and two with other parameters, clean and 40 dB (~5 min):
+# bench/plants_results.json, bench/PLANTS_RESULTS.md
+bench-plants: env
+	$(PY) bench/plants_bench.py
 
 # the true structure's coefficients fitted to 40 dB protocol data, three recordings (~10 min):
 # bench/oracle_results.json, bench/ORACLE_RESULTS.md

@@ -50,8 +50,8 @@ UG_GRID = [0.2, 0.4, 0.6, 0.8, 1.0, 1.1, 1.2]
 BENCH = Path(__file__).resolve().parent
 
 
-def datasets(effects, snr, seed=0, n_traj=12, duration=None):
-    plant = InverterPlant(effects=effects or None)
+def datasets(effects, snr, seed=0, n_traj=12, duration=None, params=None):
+    plant = InverterPlant(params, effects=effects or None)
     train = generate(plant, *schedules_for("train", seed=seed, n_traj=n_traj, duration=duration))
     small = generate(plant, *schedules_for("smallsignal"))
     test = generate(plant, *schedules_for("test"))
@@ -175,6 +175,7 @@ def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, lab
     row["wasserstein_mean"] = float(np.mean(vals)) if len(vals) == len(grid) else None
     row["ug_grid"] = grid
     row["spectra_found"] = sum(v is not None for v in model_spectra.values())
+    row["no_equilibrium"] = [g for g in grid if model_spectra[g] is None]
     row["spurious_unstable"] = [g for g in grid if g <= 1.1 and model_spectra[g] is not None
                                 and model_spectra[g].real.max() > 0 > truth_spectra[g].real.max()]
     row["missed_unstable"] = [g for g in grid if truth_spectra[g].real.max() > 0

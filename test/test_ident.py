@@ -603,6 +603,24 @@ def test_sparse_refit_recovers_the_structure_of_clean_records():
         sparse_refit(train, terms, budgets=[1.0], span=399)
 
 
+def test_least_squares_elimination_ranks_removals_where_the_normal_equations_cannot():
+    # a nearly collinear pair (cond ~3e6: ~1e13 for aᵀa) and an equation error ~1e-20 of b's
+    # energy, as on clean records of an inverter whose grid and filter currents nearly coincide
+    from pisml_ros.ident.refit import least_squares_elimination
+
+    t = np.linspace(0, 1, 2000)
+    c = np.cos(2 * np.pi * t)
+    a = np.column_stack([np.sin(2 * np.pi * t), c, c + 1e-6 * np.sin(6 * np.pi * t), t, t ** 2, np.ones_like(t)])
+    b = 3.0 * a[:, 0] - 0.5 * a[:, 3] + 1e-11 * np.random.default_rng(0).standard_normal(t.size)
+    least = 0.5 * np.sum((a @ np.linalg.lstsq(a, b, rcond=None)[0] - b) ** 2)
+    some = least_squares_elimination(a, b, [10 * least])[0]
+    assert np.flatnonzero(some).tolist() == [0, 3]
+    np.testing.assert_allclose(some[[0, 3]], [3.0, -0.5], rtol=1e-9)
+    # a column that carries nothing goes first, at no cost
+    zero = least_squares_elimination(np.column_stack([a[:, [0, 3]], np.zeros_like(t)]), b, [0.0])[0]
+    assert np.flatnonzero(zero).tolist() == [0, 1]
+
+
 def test_selection_excuses_a_fold_just_before_an_edge_rest_point_that_the_model_passes_slowly():
     from pisml_ros.analysis.operating_point import rest_drift
     from pisml_ros.ident.estimators import _selected
