@@ -14,10 +14,11 @@ each row's least-squares cost, 72 nonzero coefficients against the truth's 88, n
 Pf and Qf rows exactly the true ones, with the Rd current×current products; missing: eight
 (il − ig) pairs of the controller's cross-couplings (the small capacitor current, nearly
 collinear with the vc terms at these operating points). IOD/OOD 0.010/0.015 %, in 0.2 s. On an
-inverter with a small filter capacitor (bench/plants_bench.py's vendor-c) 71 coefficients, where the
-elimination on the normal equations kept 194 (see :func:`least_squares_elimination`). With measurement noise the equation error is biased (noise in
-the regressors) and these candidates lose the selection to the trajectory-fitted ones (60 dB:
-~4.5 % training error; 100 dB: some drop integrator terms and lose their equilibrium).
+inverter with a small filter capacitor (bench/plants_bench.py's vendor-c) 71 coefficients, where
+the elimination on the normal equations kept 194 (see :func:`least_squares_elimination`). With
+measurement noise the equation error is biased (noise in the regressors) and these candidates
+lose the selection to the trajectory-fitted ones (60 dB: ~4.5 % training error; 100 dB: some drop
+integrator terms and lose their equilibrium).
 """
 from __future__ import annotations
 
@@ -104,8 +105,7 @@ def least_squares_elimination(a: np.ndarray, b: np.ndarray, budgets: Sequence[fl
     scale[scale == 0] = 1.0
     a = a / scale  # the removal ranking is invariant to column scaling; the SVD's cut-off is not
     live = np.ones(a.shape[1], dtype=bool)
-    coef, cost, inverse_diag = _least_squares(a, b, with_inverse_diagonal=True)
-    full_cost = cost
+    coef, full_cost, inverse_diag = _least_squares(a, b, with_inverse_diagonal=True)
     path = [(0.0, np.flatnonzero(live), coef)]
     while live.sum() > 1:
         columns = np.flatnonzero(live)
@@ -128,7 +128,7 @@ def least_squares_elimination(a: np.ndarray, b: np.ndarray, budgets: Sequence[fl
 def _least_squares(a, b, with_inverse_diagonal=False):
     """Minimum-norm least squares by SVD: (coefficients, ‖a·c − b‖², diag((aᵀa)⁺) if asked)."""
     u, s, vt = np.linalg.svd(a, full_matrices=False)
-    keep = s > s[0] * max(a.shape) * np.finfo(float).eps if s.size else s > 0
+    keep = s > s[0] * max(a.shape) * np.finfo(float).eps
     coef = vt[keep].T @ ((u[:, keep].T @ b) / s[keep])
     cost = float(((a @ coef - b) ** 2).sum())
     if not with_inverse_diagonal:
