@@ -29,7 +29,7 @@ import numpy as np
 from pisml_ros.analysis.metrics import protocol_errors, spectrum_wasserstein
 from pisml_ros.ident.derivatives import integral_form
 from pisml_ros.ident.library import extended_library, monomial_basis, physics_library
-from pisml_ros.ident.noise import estimate_noise_std
+from pisml_ros.ident.noise import residual_weights
 from pisml_ros.ident.roles import SignalRoles
 from pisml_ros.ident.trajfit import TrajectoryFitter
 from pisml_ros.model import ExplicitModel
@@ -92,9 +92,7 @@ def fit_seed(seed: int, snr: float, stages, basis, coef_true, plant, test) -> li
     for j in range(len(STATE_NAMES)):
         rows = np.flatnonzero(mask[:, j])
         coef[rows, j] = np.linalg.lstsq(a[:, rows], b[:, j], rcond=None)[0]
-    noise = estimate_noise_std(train)
-    spread = np.concatenate([tr.x for tr in train]).std(axis=0)
-    weights = 1.0 / np.maximum(noise, 1e-4 * spread + 1e-12)
+    weights = residual_weights(train)
     refs = {"reference_points": [{"inputs": [1.0, 0.0], "state": plant.equilibrium(1.0).tolist()}]}
     rows = []
     started = time.monotonic()

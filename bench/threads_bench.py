@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     from bench import PLANTS, datasets  # the identification benchmark's protocol data, same seeds
     from pisml_ros.ident import IdentConfig, make_estimator
     from pisml_ros.ident.estimators import _stability_anchors
-    from pisml_ros.ident.noise import estimate_noise_std
+    from pisml_ros.ident.noise import residual_weights
     from pisml_ros.ident.trajfit import TrajectoryFitter
     from pisml_ros.model import ExplicitModel
     from pisml_ros.model.expressions import term_set
@@ -58,8 +58,7 @@ def main(argv=None) -> int:
         model = make_estimator("pisml", IdentConfig.from_mapping({"refine": False})).fit(train, small).explicit_model_
         print(f"distilled model: {model.n_parameters} coefficients ({time.monotonic() - started:.1f} s)", flush=True)
     signals = tuple(model.state_names) + tuple(model.input_names)
-    spread = np.concatenate([tr.x for tr in train]).std(axis=0)
-    weights = 1.0 / np.maximum(estimate_noise_std(train), 1e-4 * spread + 1e-12)
+    weights = residual_weights(train)
     coef = np.asarray(model.coefficients, dtype=float)
 
     runs = {}

@@ -877,13 +877,11 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     dict
         ``{"refined": model, "pruned +0.1 %": model, ...}`` (the caller selects).
     """
-    from .noise import estimate_noise_std
+    from .noise import residual_weights
     from .trajfit import TrajectoryFitter, backward_elimination
 
     signals = tuple(model.state_names) + tuple(model.input_names)
-    noise = estimate_noise_std(train)
-    spread = np.concatenate([tr.x for tr in train]).std(axis=0)
-    weights = 1.0 / np.maximum(noise, 1e-4 * spread + 1e-12)
+    weights = residual_weights(train)
 
     import torch
 

@@ -30,3 +30,15 @@ def estimate_noise_std(dataset: Dataset, min_samples: int = 8) -> np.ndarray:
         return np.std(d - np.median(d, axis=0), axis=0) / np.sqrt(2.0)
     d2 = np.concatenate([np.diff(tr.x, n=2, axis=0) for tr in dataset if len(tr) > 2])
     return np.std(d2, axis=0) / np.sqrt(6.0)
+
+
+def residual_weights(dataset: Dataset) -> np.ndarray:
+    """Trajectory-residual weight per state: 1 / the measured noise std, the std floored at 1e-4 of
+    the state's spread over the records (clean records: no infinite weights).
+
+    Returns
+    -------
+    ndarray, shape (n_states,)
+    """
+    spread = np.concatenate([tr.x for tr in dataset]).std(axis=0)
+    return 1.0 / np.maximum(estimate_noise_std(dataset), 1e-4 * spread + 1e-12)
