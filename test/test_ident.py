@@ -734,6 +734,14 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     # equilibrium), a stable pruned model is not preferred for it
     two["refined"] = ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[-1.0], [1.0], [0.01]]), {})
     assert _selected(template, two, scores2, tolerance=0.5).metadata["selection"]["chosen"] == "pruned +1 %"
+    # ... but a refined model that contradicts the record at rest there (a mode growing at 10 1/s,
+    # beyond unstable_rate) has no verdicts to copy: the sparsest pruned model (dx/dt = 1 - x) wins
+    # over one that is weakly unstable like it (dx/dt = 0.5 (x - 1) + 0.001 u)
+    copied = {"refined": ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[-10.0], [10.0], [0.01]]), {}),
+              "pruned +0.3 %": ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[-0.5], [0.5], [0.001]]), {}),
+              "pruned +1 %": ExplicitModel(("x",), ("u",), ["1", "x"], np.array([[1.0], [-1.0]]), {})}
+    picked = _selected(template, copied, scores2, tolerance=0.5, unstable_rate=1.0).metadata["selection"]
+    assert picked["inconsistent_rest_points"]["refined"] == 1 and picked["chosen"] == "pruned +1 %"
     # a candidate with no equilibrium at the records' operating points (dx/dt = 1 - 0.5 u never
     # vanishes at u = 0) does not win, however well it scores
     two["re-fit +300 %"] = ExplicitModel(("x",), ("u",), ["1", "u"], np.array([[1.0], [-0.5]]), {})
