@@ -43,18 +43,23 @@ class Schedule:
         return u
 
 
-def training_schedules(n_traj: int = 12, seed: int = 0, duration: float = 0.04) -> list[Schedule]:
+def training_schedules(n_traj: int = 12, seed: int = 0, duration: float = 0.04,
+                       ug_range: tuple = (0.8, 1.2), jump_deg: tuple = (5.0, 10.0)) -> list[Schedule]:
     """Paper training set: start at equilibrium with ug0 ~ U[0.8, 1.2]; a sag that keeps
     80–100 % of the pre-event voltage (random start, random length, may last to the end)
-    and a ±5–10° phase jump, at random times."""
+    and a ±5–10° phase jump, at random times.
+
+    ``ug_range`` and ``jump_deg`` (magnitude, degrees) change the pre-event voltages and the phase
+    jumps (other scenarios than the paper's, as bench/scenarios_bench.py runs); the same seed gives
+    the same event times and sag depths."""
     rng = np.random.default_rng(seed)
     schedules = []
     for k in range(n_traj):
-        ug0 = rng.uniform(0.8, 1.2)
+        ug0 = rng.uniform(*ug_range)
         sag_level = ug0 * rng.uniform(0.8, 1.0)
         t_sag = rng.uniform(0.1, 0.6) * duration
         t_back = t_sag + rng.uniform(0.2, 0.8) * duration
-        jump = math.radians(rng.uniform(5.0, 10.0)) * rng.choice([-1.0, 1.0])
+        jump = math.radians(rng.uniform(*jump_deg)) * rng.choice([-1.0, 1.0])
         t_jump = rng.uniform(0.05, 0.9) * duration
         steps = [(t_sag, "ug", sag_level), (t_jump, "theta_g", jump)]
         if t_back < duration:

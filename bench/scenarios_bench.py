@@ -1,0 +1,142 @@
+"""PISML on recordings that depart from the paper protocol it was tuned on.
+
+    python bench/scenarios_bench.py [--scenarios protocol,jumps-10-20,...] [--seeds 0,1] [--noise clean,40]
+                                    [--out FILE] [--markdown FILE]
+
+Every setting of the engine was measured on the paper protocol (DESIGN.md): 12 records of 40 ms at
+10 kHz, ug0 in [0.8, 1.2], phase jumps of 5-10 degrees, small-signal steps around ug 0.8. A user's
+recordings differ. Each scenario here changes one thing (the sample rate, the grid voltages the
+records start from, the size of the phase jumps, where the small-signal steps sit, the number and
+length of the records) and keeps the rest; the test records are the protocol's (at the scenario's
+sample rate) and the errors are against the default plant's clean truth, as in bench/bench.py.
+Seed k gives the same event times, sag depths and noise as bench.py's recording k. Writes
+bench/scenarios_results.json and bench/SCENARIOS_RESULTS.md (~25 min on 2 cores with the defaults).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parent
+sys.path[:0] = [str(BENCH), str(BENCH.parent)]
+
+# one change each against the protocol: training_schedules keywords, the sample period (s) and the
+# small-signal operating point (ug)
+SCENARIOS = {
+    "protocol": {},
+    "20 kHz": {"dt": 5e-5},
+    "5 kHz": {"dt": 2e-4},
+    "ug0 0.6-1.0": {"ug_range": (0.6, 1.0)},
+    "jumps 10-20°": {"jump_deg": (10.0, 20.0)},
+    "small-signal at ug 1.0": {"smallsignal_ug": 1.0},
+    "8 records of 60 ms": {"n_traj": 8, "duration": 0.06},
+}
+
+
+def scenario_datasets(spec: dict, snr: float | None, seed: int):
+    """The plant and the training, small-signal and test records of one scenario (noise as bench.datasets)."""
+    from pisml_ros.plant import InverterPlant
+    from pisml_ros.plant.noise import add_measurement_noise
+    from pisml_ros.plant.scenarios import evaluation_schedules, generate, smallsignal_schedules, training_schedules
+
+    spec = dict(spec)
+    dt = spec.pop("dt", 1e-4)
+    small_ug = spec.pop("smallsignal_ug", 0.8)
+    duration = spec.pop("duration", 0.04)
+    plant = InverterPlant()
+    train = generate(plant, training_schedules(spec.pop("n_traj", 12), seed, duration, **spec), duration, dt=dt)
+    small = generate(plant, smallsignal_schedules(small_ug), 0.1, dt=dt)
+    test = generate(plant, evaluation_schedules(0.04), 0.04, dt=dt)
+    if snr is not None:
+        train = add_measurement_noise(train, snr, seed=seed + 101)
+        small = add_measurement_noise(small, snr, seed=seed + 202)
+    return plant, train, small, test
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenarios", default=",".join(SCENARIOS), help="names of SCENARIOS, comma-separated")
+    parser.add_argument("--seeds", default="0,1", help="recordings (scenario and noise seeds)")
+    parser.add_argument("--noise", default="clean,40", help="'clean' and/or SNRs in dB")
+    parser.add_argument("--out", default=str(BENCH / "scenarios_results.json"))
+    parser.add_argument("--markdown", default=str(BENCH / "SCENARIOS_RESULTS.md"))
+    args = parser.parse_args(argv)
+
+    from bench import fmt, plant_grid, run_fit, spurious_text, ug_sweep_set
+    from pisml_ros.ident import IdentConfig
+
+    names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
+    unknown = [s for s in names if s not in SCENARIOS]
+    if unknown:
+        parser.error(f"--scenarios: unknown {unknown} (known: {', '.join(SCENARIOS)})")
+    levels = [None if s.strip() == "clean" else float(s) for s in args.noise.split(",") if s.strip()]
+    config = IdentConfig()
+    started = time.monotonic()
+    rows = []
+    for snr in levels:
+        noise = "clean" if snr is None else f"{snr:g} dB"
+        for name in names:
+            for seed in (int(k) for k in args.seeds.split(",")):
+                plant, train, small, test = scenario_datasets(SCENARIOS[name], snr, seed)
+                grid = plant_grid(plant)
+                truth = {g: plant.eigenvalues(g, 0.0) for g in grid}
+                row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant, grid), truth, config,
+                                 f"{name}/{noise}")
+                row.update(scenario=name, noise=noise, seed=seed)
+                rows.append({k: v for k, v in row.items() if not k.startswith(("_", "sweep"))})
+                print(f"{name:22s} {seed} {noise:6s} IOD {fmt(row.get('iod')):>7} % OOD {fmt(row.get('ood')):>7} % "
+                      f"W0.8 {fmt(row.get('wasserstein_ug08')):>7} coef {row.get('n_parameters', '—'):>4} "
+                      f"spurious {spurious_text(row)} {row['seconds']:.1f} s", flush=True)
+                write(args, rows, started)
+    write(args, rows, started, final=True)
+    return 0
+
+
+def write(args, rows, started, final=False):
+    """The results JSON after every fit (a crash loses nothing) and the markdown table."""
+    from bench import fmt, spurious_text
+
+    result = {"complete": final, "command": "python bench/scenarios_bench.py " + " ".join(sys.argv[1:]),
+              "date": time.strftime("%Y-%m-%d"),
+              "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+              "total_seconds": round(time.monotonic() - started, 1),
+              "scenarios": {k: {key: list(v) if isinstance(v, tuple) else v for key, v in spec.items()}
+                            for k, spec in SCENARIOS.items()},
+              "runs": rows}
+    Path(args.out).write_text(json.dumps(result, indent=2, default=float) + "\n")
+    lines = ["# PISML on other scenarios", "",
+             f"Generated by `{result['command'].strip()}` on {result['machine']} ({result['date']}); "
+             f"{result['total_seconds']:.0f} s.", "",
+             "The paper protocol with one thing changed (`bench/scenarios_bench.py`, SCENARIOS); the default plant; "
+             "the protocol's test records, errors against the clean truth (IOD / OOD as in RESULTS.md). "
+             "Spurious: an unstable model mode where the plant is stable (ug 0.2-1.1; '(in data)': inside the "
+             "grid voltages of the records); no equilibrium: grid points where the analysis finds none.", "",
+             "| scenario | seed | data | IOD % | OOD % | W (ug 0.8) | coefficients | spurious | no equilibrium | "
+             "ΔQ op. | s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scenario']} | {r['seed']} | {r['noise']} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
+                     f"{fmt(r.get('wasserstein_ug08'))} | {r.get('n_parameters', '—')} | {spurious_text(r)} | "
+                     f"{', '.join(map(str, r.get('no_equilibrium', []))) or 'none'} | {fmt(r.get('op_dq'), 2)} | "
+                     f"{r['seconds']:.0f} |")
+    lines += ["", "Within the issue's targets (clean: IOD ≤ 0.05 %, OOD ≤ 0.1 %; noisy: IOD ≤ 0.5 %, OOD ≤ 1 %) "
+              "and with no spurious unstable mode:", ""]
+    for noise in dict.fromkeys(r["noise"] for r in rows):
+        iod_max, ood_max = (0.05, 0.1) if noise == "clean" else (0.5, 1.0)
+        for name in dict.fromkeys(r["scenario"] for r in rows):
+            runs = [r for r in rows if r["scenario"] == name and r["noise"] == noise]
+            good = [r["seed"] for r in runs if (r.get("iod") or 1e9) <= iod_max and (r.get("ood") or 1e9) <= ood_max
+                    and not r.get("spurious_unstable")]
+            lines.append(f"- {noise}, {name}: {len(good)} of {len(runs)}")
+    lines += ["", "Scenarios (changes against the protocol):", ""]
+    lines += [f"- {name}: {', '.join(f'{k} {v}' for k, v in spec.items()) or 'none'}" for name, spec in SCENARIOS.items()]
+    Path(args.markdown).write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
