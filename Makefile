@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: env demo test test-fast bags bench bench-quick bench-gap bench-oracle bench-plants clean
+.PHONY: env demo test test-fast bags bench bench-quick bench-gap bench-oracle bench-plants bench-scenarios clean
 
 env:
 	@bash scripts/bootstrap_env.sh
@@ -43,6 +43,11 @@ bench-gap: env
 # bench/plants_results.json, bench/PLANTS_RESULTS.md
 bench-plants: env
 	$(PY) bench/plants_bench.py
+
+# PISML on the protocol with one thing changed (sample rate, voltages, phase jumps, small-signal point,
+# record count/length; ~25 min on 2 cores): bench/scenarios_results.json, bench/SCENARIOS_RESULTS.md
+bench-scenarios: env
+	$(PY) bench/scenarios_bench.py
 
 # the true structure's coefficients fitted to 40 dB protocol data, three recordings (~10 min):
 # bench/oracle_results.json, bench/ORACLE_RESULTS.md

@@ -246,3 +246,20 @@ def test_effect_assignments():
                 ["current_limit.imax=-1"], ["delay.order=3"]):
         with pytest.raises(ParameterError):
             parse_effect_assignments([], bad)
+
+
+def test_training_schedules_change_voltages_and_jumps_and_keep_the_rest():
+    from pisml_ros.plant.scenarios import training_schedules
+
+    paper = training_schedules(12, seed=3)
+    other = training_schedules(12, seed=3, ug_range=(0.6, 1.0), jump_deg=(10.0, 20.0))
+    for a, b in zip(paper, other):
+        assert 0.8 <= a.ug0 <= 1.2 and 0.6 <= b.ug0 <= 1.0
+        jumps = [(s[2], t[2]) for s, t in zip(a.steps, b.steps) if s[1] == "theta_g"]
+        assert len(jumps) == 1
+        assert 5.0 <= math.degrees(abs(jumps[0][0])) <= 10.0 and 10.0 <= math.degrees(abs(jumps[0][1])) <= 20.0
+        assert np.sign(jumps[0][0]) == np.sign(jumps[0][1])
+        # the same event times and relative sag depths
+        assert [s[0] for s in a.steps] == [s[0] for s in b.steps]
+        sags = [(s[2] / a.ug0, t[2] / b.ug0) for s, t in zip(a.steps, b.steps) if s[1] == "ug"]
+        assert all(math.isclose(x, y) for x, y in sags)
