@@ -110,6 +110,17 @@ def rd_terms_found(model) -> int:
                for state, terms in RD_TERMS.items() for term in terms)
 
 
+def fit_summary(row) -> str:
+    """One progress line of a :func:`run_fit` row: errors, W at ug 0.8, coefficients, spurious modes, time."""
+    return (f"IOD {fmt(row.get('iod')):>7} % OOD {fmt(row.get('ood')):>7} % W0.8 {fmt(row.get('wasserstein_ug08')):>7} "
+            f"coef {row.get('n_parameters', '—'):>4} spurious {spurious_text(row)} {row['seconds']:.1f} s")
+
+
+def machine() -> str:
+    """The machine a results file was made on."""
+    return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
 def spurious_text(row) -> str:
     """The ug points of a run's spurious unstable modes, those inside the ug range the model was
     identified on marked "(in data)"; "none", or "error" for a failed fit."""
@@ -352,7 +363,7 @@ def save(args, runs, started, config, final=False):
         "complete": final,
         "command": "python bench/bench.py" + (" --quick" if args.quick else ""),
         "mode": "quick" if args.quick else "full",
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+        "machine": machine(),
         "date": time.strftime("%Y-%m-%d"),
         "total_seconds": time.monotonic() - started,
         "config": config.to_dict(),

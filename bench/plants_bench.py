@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -49,7 +47,7 @@ def main(argv=None) -> int:
     parser.add_argument("--markdown", default=str(BENCH / "PLANTS_RESULTS.md"))
     args = parser.parse_args(argv)
 
-    from bench import datasets, fmt, plant_grid, run_fit, spurious_text, ug_sweep_set
+    from bench import datasets, fit_summary, plant_grid, run_fit, ug_sweep_set
     from pisml_ros.ident import IdentConfig
     from pisml_ros.plant.parameters import PlantParameters
 
@@ -71,9 +69,7 @@ def main(argv=None) -> int:
                 row.update(plant=name, noise=noise, seed=seed, parameters=PLANT_PARAMETERS[name],
                            plant_unstable=[g for g in grid if truth[g].real.max() > 0])
                 rows.append({k: v for k, v in row.items() if not k.startswith("_")})
-                print(f"{name:9s} {seed} {noise:6s} {method:10s} IOD {fmt(row.get('iod')):>7} % OOD {fmt(row.get('ood')):>7} % "
-                      f"W0.8 {fmt(row.get('wasserstein_ug08')):>7} coef {row.get('n_parameters', '—'):>4} "
-                      f"spurious {spurious_text(row)} {row['seconds']:.1f} s", flush=True)
+                print(f"{name:9s} {seed} {noise:6s} {method:10s} {fit_summary(row)}", flush=True)
                 write(args, rows, started)
     write(args, rows, started, final=True)
     return 0
@@ -81,11 +77,11 @@ def main(argv=None) -> int:
 
 def write(args, rows, started, final=False):
     """The results JSON after every fit (a crash loses nothing) and the markdown table."""
-    from bench import fmt, spurious_text
+    from bench import fmt, machine, spurious_text
 
     result = {"complete": final, "command": "python bench/plants_bench.py " + " ".join(sys.argv[1:]),
               "date": time.strftime("%Y-%m-%d"),
-              "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+              "machine": machine(),
               "total_seconds": round(time.monotonic() - started, 1), "plants": PLANT_PARAMETERS, "runs": rows}
     Path(args.out).write_text(json.dumps(result, indent=2, default=float) + "\n")
     lines = ["# PISML on other inverters", "",

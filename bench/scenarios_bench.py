@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -67,7 +65,7 @@ def main(argv=None) -> int:
     parser.add_argument("--markdown", default=str(BENCH / "SCENARIOS_RESULTS.md"))
     args = parser.parse_args(argv)
 
-    from bench import fmt, plant_grid, run_fit, spurious_text, ug_sweep_set
+    from bench import fit_summary, plant_grid, run_fit, ug_sweep_set
     from pisml_ros.ident import IdentConfig
 
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
@@ -89,9 +87,7 @@ def main(argv=None) -> int:
                                  f"{name}/{noise}")
                 row.update(scenario=name, noise=noise, seed=seed)
                 rows.append({k: v for k, v in row.items() if not k.startswith(("_", "sweep"))})
-                print(f"{name:22s} {seed} {noise:6s} IOD {fmt(row.get('iod')):>7} % OOD {fmt(row.get('ood')):>7} % "
-                      f"W0.8 {fmt(row.get('wasserstein_ug08')):>7} coef {row.get('n_parameters', '—'):>4} "
-                      f"spurious {spurious_text(row)} {row['seconds']:.1f} s", flush=True)
+                print(f"{name:22s} {seed} {noise:6s} {fit_summary(row)}", flush=True)
                 write(args, rows, started)
     write(args, rows, started, final=True)
     return 0
@@ -99,11 +95,11 @@ def main(argv=None) -> int:
 
 def write(args, rows, started, final=False):
     """The results JSON after every fit (a crash loses nothing) and the markdown table."""
-    from bench import fmt, spurious_text
+    from bench import fmt, machine, spurious_text
 
     result = {"complete": final, "command": "python bench/scenarios_bench.py " + " ".join(sys.argv[1:]),
               "date": time.strftime("%Y-%m-%d"),
-              "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+              "machine": machine(),
               "total_seconds": round(time.monotonic() - started, 1),
               "scenarios": {k: {key: list(v) if isinstance(v, tuple) else v for key, v in spec.items()}
                             for k, spec in SCENARIOS.items()},
