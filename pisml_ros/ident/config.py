@@ -80,6 +80,15 @@ class IdentConfig:
     # pruned (167 coefficients) and polished 0.17 / 0.80 %, 160 s; the one-stage refinement was
     # abandoned there. From a start this far, windows of 20-50 samples straight away diverge or stall
     refine_growing_windows: tuple = (10, 25, 50)
+    # Stop 30 (40 dB, cost per evaluation logged): the windows-of-10 stage is still falling fast at
+    # its 15th evaluation (recording 0: 3754 there, 2920 at the 30th; the 25 and 50 stages level off
+    # within ~8). (30, 20, 20), recordings 0-4, IOD / OOD % (coefficients): 0.16 / 0.44 (78),
+    # 0.40 / 0.69 (90), 0.41 / 0.46 (95), 0.90 / 1.43 (149), 0.63 / 0.73 (140), 88-105 s (default:
+    # 0.28 / 0.44, 0.68 / 0.58, 0.65 / 0.41, 0.57 / 0.32, 0.32 / 1.95, 51-62 s); off the protocol
+    # (bench/scenarios_bench.py, seed 1): phase jumps 10-20° 0.97 / 3.97 -> 0.24 / 0.64, ug0 0.6-1.0
+    # 2.83 / 6.04 (W 1594) -> 0.45 / 0.79 (W 5.9), 8 records of 60 ms 0.90 / 2.82 -> 0.56 / 4.09,
+    # 100-120 s. (30, 10, 10) with refine_stage_tolerance 1e-4: 0.39 / 0.82, 0.55 / 0.53, 87 s. Not the
+    # default: the time target (60 s) and the benchmark's 30 min; `--set refine_growing_evaluations=30,20,20`
     refine_growing_evaluations: tuple = (15, 10, 10)
     # RK4 steps per sample in the growing-window stages (the polish keeps 2). Measured at 1 (40 dB,
     # recordings 0 / 1 / 2): 53 / 48 / 48 s instead of ~70 s, but recording 0's pruned model was
