@@ -34,8 +34,9 @@ from pisml_ros.ident import IdentConfig, make_estimator
 from pisml_ros.ident.library import monomial_basis
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.noise import add_measurement_noise
-from pisml_ros.plant.scenarios import Schedule, generate, schedules_for
-from pisml_ros.signals import SCORED_STATES
+from pisml_ros.plant.scenarios import (Schedule, evaluation_schedules, generate, smallsignal_schedules,
+                                       training_schedules)
+from pisml_ros.signals import SAMPLE_RATE_HZ, SCORED_STATES
 
 METHODS = ("pisml", "pisml-nojac", "mod-sindy", "std-sindy", "node")
 # further 40 dB training recordings (scenario and noise seeds; 0 is the main table's): one recording
@@ -50,11 +51,15 @@ UG_GRID = [0.2, 0.4, 0.6, 0.8, 1.0, 1.1, 1.2]
 BENCH = Path(__file__).resolve().parent
 
 
-def datasets(effects, snr, seed=0, n_traj=12, duration=None, params=None):
+def datasets(effects, snr, seed=0, n_traj=12, duration=None, params=None, dt=1.0 / SAMPLE_RATE_HZ,
+             smallsignal_ug=0.8, **training):
+    """The plant and its training, small-signal and test records (the paper protocol by default;
+    ``training``: more keywords of training_schedules, as scenarios_bench.py changes them)."""
     plant = InverterPlant(params, effects=effects or None)
-    train = generate(plant, *schedules_for("train", seed=seed, n_traj=n_traj, duration=duration))
-    small = generate(plant, *schedules_for("smallsignal"))
-    test = generate(plant, *schedules_for("test"))
+    duration = duration or 0.04
+    train = generate(plant, training_schedules(n_traj, seed, duration, **training), duration, dt=dt)
+    small = generate(plant, smallsignal_schedules(smallsignal_ug), 0.1, dt=dt)
+    test = generate(plant, evaluation_schedules(0.04), 0.04, dt=dt)
     if snr is not None:
         train = add_measurement_noise(train, snr, seed=seed + 101)
         small = add_measurement_noise(small, snr, seed=seed + 202)

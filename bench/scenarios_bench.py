@@ -23,8 +23,8 @@ from pathlib import Path
 BENCH = Path(__file__).resolve().parent
 sys.path[:0] = [str(BENCH), str(BENCH.parent)]
 
-# one change each against the protocol: training_schedules keywords, the sample period (s) and the
-# small-signal operating point (ug)
+# one change each against the protocol: keywords of bench.datasets (the sample period dt in s, the
+# small-signal operating point, the records' number and length, training_schedules' ranges)
 SCENARIOS = {
     "protocol": {},
     "20 kHz": {"dt": 5e-5},
@@ -37,23 +37,10 @@ SCENARIOS = {
 
 
 def scenario_datasets(spec: dict, snr: float | None, seed: int):
-    """The plant and the training, small-signal and test records of one scenario (noise as bench.datasets)."""
-    from pisml_ros.plant import InverterPlant
-    from pisml_ros.plant.noise import add_measurement_noise
-    from pisml_ros.plant.scenarios import evaluation_schedules, generate, smallsignal_schedules, training_schedules
+    """The plant and the training, small-signal and test records of one scenario (bench.datasets)."""
+    from bench import datasets
 
-    spec = dict(spec)
-    dt = spec.pop("dt", 1e-4)
-    small_ug = spec.pop("smallsignal_ug", 0.8)
-    duration = spec.pop("duration", 0.04)
-    plant = InverterPlant()
-    train = generate(plant, training_schedules(spec.pop("n_traj", 12), seed, duration, **spec), duration, dt=dt)
-    small = generate(plant, smallsignal_schedules(small_ug), 0.1, dt=dt)
-    test = generate(plant, evaluation_schedules(0.04), 0.04, dt=dt)
-    if snr is not None:
-        train = add_measurement_noise(train, snr, seed=seed + 101)
-        small = add_measurement_noise(small, snr, seed=seed + 202)
-    return plant, train, small, test
+    return datasets({}, snr, seed=seed, **spec)
 
 
 def main(argv=None) -> int:
@@ -101,8 +88,7 @@ def write(args, rows, started, final=False):
               "date": time.strftime("%Y-%m-%d"),
               "machine": machine(),
               "total_seconds": round(time.monotonic() - started, 1),
-              "scenarios": {k: {key: list(v) if isinstance(v, tuple) else v for key, v in spec.items()}
-                            for k, spec in SCENARIOS.items()},
+              "scenarios": SCENARIOS,
               "runs": rows}
     Path(args.out).write_text(json.dumps(result, indent=2, default=float) + "\n")
     lines = ["# PISML on other scenarios", "",
