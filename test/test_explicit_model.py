@@ -321,7 +321,9 @@ def test_term_gradients_by_the_product_rule_match_autodiff():
                   ["1", "il_d", "Pf*vc_q", "vc_d**2", "ug*sin(delta - theta_g)", "cos(delta)"],
                   ["1", "il_d", "cos(delta)"],
                   ["1", "il_d", "il_d*(Pf - 0.5)", "(Pf - 0.5)**2", "ig_q*(Pf - 0.5)"],  # affine factors as written
-                  ["vc_d*ig_d + vc_q*ig_q", "tanh(il_d)", "ug*sin(theta_g - delta)", "Abs(il_q)"]):  # no product plan
+                  ["vc_d*ig_d + vc_q*ig_q", "tanh(il_d)", "ug*sin(theta_g - delta)", "Abs(il_q)"],  # no product plan
+                  # no product plan, sympy's derivatives: constant ones (2, -1, 0) from the fixed table
+                  ["1", "2*Pf - il_d", "vc_d*ig_d + vc_q*ig_q", "il_q/(1 + il_q**2)", "ug*sin(theta_g - delta)"]):
         ts = TermSet(terms, signals)
         expected = torch.func.vmap(torch.func.jacfwd(ts.evaluate_torch))(z)
         np.testing.assert_allclose(ts.gradient_torch(z).numpy(), expected.numpy(), atol=1e-12)
