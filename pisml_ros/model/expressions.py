@@ -182,38 +182,16 @@ class TermSet:
         -> (..., n_terms, n_signals), or False where they use a function torch lacks here (sympy's
         Heaviside of a Min, say).
 
-        Most entries are constants (a term's derivative in a signal it lacks is 0): they sit in a
-        fixed table and only the varying entries are evaluated per call. Filling every entry per
-        call was half of a refinement pass over long windows (measured: 1.13 of 2.30 s per
-        Gauss-Newton step, windows of 50, a 24-term distilled model).
+        Most entries are constants (a term's derivative in a signal it lacks is 0), filled from a
+        fixed table (:func:`_entries_torch`). Filling every entry per call was half of a
+        refinement pass over long windows for a term set without a product plan (measured: 1.13
+        of 2.30 s per Gauss-Newton step, windows of 50, a 24-term distilled model with p and q).
         """
         if self._grad_symbolic is None:
             import torch
 
-            table = np.zeros((len(self.exprs), len(self._symbols)))
-            varying = []
-            for t, expr in enumerate(self.exprs):
-                for k, sym in enumerate(self._symbols):
-                    d = sympy.diff(expr, sym)
-                    if d.is_number and d.is_finite:
-                        table[t, k] = float(d)
-                    else:
-                        varying.append((t, k, d))
-            fn = sympy.lambdify(self._symbols, [d for _, _, d in varying], modules=[_torch_module(), "math"],
-                                cse=True) if varying else None
-            where = (torch.tensor([t for t, _, _ in varying], dtype=torch.long),
-                     torch.tensor([k for _, k, _ in varying], dtype=torch.long))
-            constants = torch.as_tensor(table)
-
-            def gradient(z):
-                out = constants.to(device=z.device, dtype=z.dtype).expand(z.shape[:-1] + constants.shape)
-                if fn is None:
-                    return out
-                out = out.clone()
-                out[..., where[0].to(z.device), where[1].to(z.device)] = torch.stack(
-                    [_column(v, z).expand(z.shape[:-1]) for v in fn(*z.unbind(-1))], dim=-1)
-                return out
-
+            gradient = _entries_torch([[sympy.diff(e, s) for s in self._symbols] for e in self.exprs],
+                                      self._symbols)
             # two rows of different signs: generated code with a Python branch (a Piecewise) runs on
             # one row and fails on more
             probe = torch.tensor([[0.5] * len(self.signals), [-0.3] * len(self.signals)], dtype=torch.float64)
@@ -293,34 +271,18 @@ class TermSet:
         import torch
 
         if self._grad_plan is None:
-            factors = self._factors
-            # the factors' derivatives: constants (plain signals: 0 or 1) go in a fixed table, the rest
-            # (cos(theta_g - delta) and the like) are evaluated per call
-            table = np.zeros((len(factors) + 1, len(self.signals)))
-            varying = []
-            for f, factor in enumerate(factors):
-                for k, sym in enumerate(self._symbols):
-                    d = sympy.diff(factor, sym)
-                    if d.is_number:
-                        table[f + 1, k] = float(d)
-                    else:
-                        varying.append((f + 1, k, d))
-            fn = sympy.lambdify(self._symbols, [d for _, _, d in varying], modules=[_torch_module(), "math"],
-                                cse=True) if varying else None
-            where = (torch.tensor([f for f, _, _ in varying], dtype=torch.long),
-                     torch.tensor([k for _, k, _ in varying], dtype=torch.long))
+            # the factors' derivatives, row 0 the plan's constant 1: constants (plain signals: 0 or 1)
+            # from a fixed table, the rest (cos(theta_g - delta) and the like) evaluated per call
+            rows = [[sympy.Integer(0)] * len(self._symbols)]
+            rows += [[sympy.diff(factor, sym) for sym in self._symbols] for factor in self._factors]
             index = self._plan[1]
-            self._grad_plan = (torch.as_tensor(table), where, fn, [index[:, m].contiguous()
+            self._grad_plan = (_entries_torch(rows, self._symbols), [index[:, m].contiguous()
                                                                      for m in range(index.shape[1])])
-        table, where, fn, columns = self._grad_plan
-        if table.device != z.device:
-            table, where, columns = table.to(z.device), tuple(w.to(z.device) for w in where), \
-                [c.to(z.device) for c in columns]
-            self._grad_plan = (table, where, fn, columns)
-        d_factor = table.to(z.dtype).expand(z.shape[:-1] + table.shape)
-        if fn is not None:
-            d_factor = d_factor.clone()
-            d_factor[..., where[0], where[1]] = torch.stack([_column(d, z) for d in fn(*z.unbind(-1))], dim=-1)
+        d_factors, columns = self._grad_plan
+        if columns[0].device != z.device:
+            columns = [c.to(z.device) for c in columns]
+            self._grad_plan = (d_factors, columns)
+        d_factor = d_factors(z)
         width = len(columns)
         out = None
         for m, column in enumerate(columns):
@@ -353,6 +315,42 @@ def _column(value, z):
     if torch.is_tensor(value):
         return value
     return torch.full(z.shape[:-1], float(value), dtype=z.dtype, device=z.device)
+
+
+def _entries_torch(entries, symbols):
+    """A table of sympy expressions (rows × columns) compiled for torch: a function of ``z``
+    (..., n_signals) -> (..., rows, columns). The constant entries sit in a fixed table and only
+    the others are evaluated per call, set in one indexed assignment (the refinement calls this at
+    every Runge-Kutta stage, where launching tensor operations is most of the time)."""
+    import torch
+
+    table = np.zeros((len(entries), len(entries[0]) if entries else 0))
+    varying = []
+    for i, row in enumerate(entries):
+        for k, entry in enumerate(row):
+            if entry.is_number and entry.is_finite:
+                table[i, k] = float(entry)
+            else:
+                varying.append((i, k, entry))
+    fn = sympy.lambdify(symbols, [e for _, _, e in varying], modules=[_torch_module(), "math"],
+                        cse=True) if varying else None
+    constants = torch.as_tensor(table)
+    where = (torch.tensor([i for i, _, _ in varying], dtype=torch.long),
+             torch.tensor([k for _, k, _ in varying], dtype=torch.long))
+    placed = {}  # the table and the indices on each device (training may run on an accelerator)
+
+    def evaluate(z):
+        if z.device not in placed:
+            placed[z.device] = (constants.to(z.device), tuple(w.to(z.device) for w in where))
+        table_z, (rows, cols) = placed[z.device]
+        out = table_z.to(z.dtype).expand(z.shape[:-1] + table_z.shape)
+        if fn is None:
+            return out
+        out = out.clone()
+        out[..., rows, cols] = torch.stack([_column(v, z).expand(z.shape[:-1]) for v in fn(*z.unbind(-1))], dim=-1)
+        return out
+
+    return evaluate
 
 
 @lru_cache(maxsize=64)
