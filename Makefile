@@ -27,11 +27,11 @@ bags: env
 	$(VENV)/bin/pisml simulate --scenario test --seed 0 --out bags/test_clean
 	$(VENV)/bin/pisml simulate --scenario smallsignal --snr-db 40 --seed 0 --out bags/smallsignal_40dB
 
-# identification benchmark (paper protocol; ~20 min on 2 cores, at most 30): bench/results.json, bench/RESULTS.md, bench/figures/
+# identification benchmark (paper protocol; 27-32 min on 2 cores since stop 31, target at most 30): bench/results.json, bench/RESULTS.md, bench/figures/
 bench: env
 	$(PY) bench/bench.py
 
-# the same on the standard plant only, clean and 40 dB, no sweeps (~8 min)
+# the same on the standard plant only, clean and 40 dB, no sweeps (~10 min)
 bench-quick: env
 	$(PY) bench/bench.py --quick --out bench/results_quick.json --markdown bench/RESULTS_quick.md
 
@@ -39,13 +39,13 @@ bench-quick: env
 bench-gap: env
 	$(PY) bench/gap_bench.py --quick
 
-# PISML and Mod-SINDy on the default inverter and two with other parameters, clean and 40 dB, recordings 0-2 (~13 min):
+# PISML and Mod-SINDy on the default inverter and two with other parameters, clean and 40 dB, recordings 0-2 (~15-20 min):
 # bench/plants_results.json, bench/PLANTS_RESULTS.md
 bench-plants: env
 	$(PY) bench/plants_bench.py
 
 # PISML on the protocol with one thing changed (sample rate, voltages, phase jumps, small-signal point,
-# record count/length; ~25 min on 2 cores): bench/scenarios_results.json, bench/SCENARIOS_RESULTS.md
+# record count/length; ~35-45 min on 2 cores): bench/scenarios_results.json, bench/SCENARIOS_RESULTS.md
 bench-scenarios: env
 	$(PY) bench/scenarios_bench.py
 
