@@ -388,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the main job on the bundled defaults (what `make demo` runs)")
     p.add_argument("--out", default="out/demo", help="report folder")
     p.add_argument("--method", help="identification method (default: the demo's, pisml)")
-    p.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds")
+    p.add_argument("--timeout", type=float, default=1200.0, help="give up after this many seconds")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_demo)
 

@@ -281,7 +281,7 @@ def _clean(obj):
     return obj
 
 
-def run_demo(out: Path, quiet: bool = False, method: str | None = None, timeout: float = 600.0) -> int:
+def run_demo(out: Path, quiet: bool = False, method: str | None = None, timeout: float = 1200.0) -> int:
     from .dds_env import configure_loopback_dds
 
     started = time.monotonic()
