@@ -32,7 +32,6 @@ import time
 
 import numpy as np
 import scipy.linalg
-from scipy.linalg.blas import dsyrk as _syrk
 
 from ..data import Dataset
 from ..data.dataset import steady_start_mean
@@ -64,6 +63,55 @@ def blas_threads(limit: int | None):
     except ImportError:
         return contextlib.nullcontext()
     return threadpool_limits(limits=limit)
+
+
+def _gram_adder():
+    """``add(a, c)``: c += aᵀ·a in c's upper triangle, a (k, n) C-ordered, c (n, n) F-ordered,
+    both float64: BLAS dsyrk (half the work of a product).
+
+    Called through ctypes on the function pointer scipy exports for Cython
+    (``scipy.linalg.cython_blas``), because ctypes releases the GIL for the call and the f2py
+    wrapper ``scipy.linalg.blas.dsyrk`` does not: the refinement's window parts run on threads,
+    and measured with two threads the wrapper's products ran one after the other (0.54 s for two
+    against 0.58 s alone), these side by side (0.24 s against 0.46 s). Same BLAS, same results;
+    the wrapper is the fallback where the pointer cannot be had.
+    """
+    import ctypes
+
+    try:
+        from scipy.linalg import cython_blas
+
+        capsule = cython_blas.__pyx_capi__["dsyrk"]
+        get_name = ctypes.PYFUNCTYPE(ctypes.c_char_p, ctypes.py_object)(("PyCapsule_GetName", ctypes.pythonapi))
+        get_pointer = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
+            ("PyCapsule_GetPointer", ctypes.pythonapi))
+        int_p, double_p = ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_double)
+        dsyrk = ctypes.CFUNCTYPE(None, ctypes.c_char_p, ctypes.c_char_p, int_p, int_p, double_p, ctypes.c_void_p,
+                                 int_p, double_p, ctypes.c_void_p, int_p)(get_pointer(capsule, get_name(capsule)))
+    except (ImportError, AttributeError, KeyError, TypeError, ValueError, OSError):
+        from scipy.linalg.blas import dsyrk as wrapped
+
+        def add(a, c):
+            wrapped(1.0, a.T, beta=1.0, c=c, trans=0, lower=0, overwrite_c=1)
+
+        return add
+
+    one = ctypes.c_double(1.0)
+
+    def add(a, c):
+        assert a.flags.c_contiguous and c.flags.f_contiguous and a.dtype == c.dtype == np.float64
+        k, n = a.shape
+        if k == 0 or n == 0:
+            return
+        # column-major: aᵀ is n × k with leading dimension n, so c += aᵀ·(aᵀ)ᵀ is "N"
+        size, depth = ctypes.c_int(n), ctypes.c_int(k)
+        dsyrk(b"U", b"N", ctypes.byref(size), ctypes.byref(depth), ctypes.byref(one), a.ctypes.data,
+              ctypes.byref(size), ctypes.byref(one), c.ctypes.data, ctypes.byref(size))
+
+    return add
+
+
+_add_gram = _gram_adder()
 
 
 @dataclasses.dataclass
@@ -293,28 +341,32 @@ def _rk4_tangent_map(a1, a2, a3, a4, h, forced: bool = True):
     A_i given, as matrices: the step maps S to P·S + G_1·B_1 + ... + G_4·B_4 (B_i at stage i).
 
     Returns [P | G_1 | G_2 | G_3 | G_4], shape (batch, n, 5n), or P alone (``forced`` false: B = 0).
-    Exactly the classical RK4 stages applied to the block tangent [S, B_1, ..., B_4] (start
-    [I, 0, ...]; stage i adds the identity in B_i's block).
+    These are the classical RK4 stages applied to the block tangent [S, B_1, ..., B_4] (start
+    [I, 0, ...]; stage i adds the identity in B_i's block), written out block by block: stage i
+    has only its first i + 1 blocks, and some of those are multiples of A_i, so three products of
+    (n × n)·(n × n, 2n, 3n) do it.
     """
     import torch
 
-    batch, n = a1.shape[0], a1.shape[1]
-    width = 5 * n if forced else n
+    n = a1.shape[-1]
     eye = torch.eye(n, dtype=a1.dtype)
-    start = torch.zeros((n, width), dtype=a1.dtype)
-    start[:, :n] = eye
-
-    def forcing(i):
-        block = torch.zeros((n, width), dtype=a1.dtype)
-        if forced:
-            block[:, (i + 1) * n:(i + 2) * n] = eye
-        return block
-
-    k1 = a1 @ start + forcing(0)
-    k2 = torch.baddbmm(forcing(1).expand(batch, n, width), a2, start + 0.5 * h * k1)
-    k3 = torch.baddbmm(forcing(2).expand(batch, n, width), a3, start + 0.5 * h * k2)
-    k4 = torch.baddbmm(forcing(3).expand(batch, n, width), a4, start + h * k3)
-    return start + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+    k2_0 = torch.bmm(a2, eye + (0.5 * h) * a1)
+    if not forced:
+        k3_0 = torch.bmm(a3, eye + (0.5 * h) * k2_0)
+        k4_0 = torch.bmm(a4, eye + h * k3_0)
+        return eye + (h / 6.0) * (a1 + 2.0 * k2_0 + 2.0 * k3_0 + k4_0)
+    k2_1 = (0.5 * h) * a2
+    k3 = torch.bmm(a3, torch.cat([eye + (0.5 * h) * k2_0, (0.5 * h) * k2_1], dim=2))  # [K3_0 | K3_1]
+    k3_2 = (0.5 * h) * a3
+    k4 = torch.bmm(a4, torch.cat([eye + h * k3[..., :n], h * k3[..., n:], h * k3_2], dim=2))  # K4_0..2
+    third = (h / 6.0)
+    return torch.cat([
+        eye + third * (a1 + 2.0 * k2_0 + 2.0 * k3[..., :n] + k4[..., :n]),
+        third * (eye + 2.0 * k2_1 + 2.0 * k3[..., n:] + k4[..., n:2 * n]),
+        third * (2.0 * eye + 2.0 * k3_2 + k4[..., 2 * n:]),
+        third * (2.0 * eye + h * a4),
+        (third * eye).expand_as(a4),
+    ], dim=2)
 
 
 def _finite(blocks: dict) -> bool:
@@ -477,108 +529,151 @@ class _ShootingProblem:
             self._pool = None
 
     def _shoot_part(self, theta, z, rows: slice, tangents: str = ""):
-        """:meth:`_shoot` over the windows ``rows`` (``z``: their start offsets)."""
+        """:meth:`_shoot` over the windows ``rows`` (``z``: their start offsets).
+
+        The states go sample by sample (RK4 is sequential). With ``tangents`` the RK4 stage points
+        are kept, and a chunk of samples at a time the model's Jacobians there, each sample's
+        tangent map (:func:`_rk4_tangent_map`) and the coefficients' forcing come from batched
+        operations; only the tangents' linear recursion S_(k+1) = P_k·S_k + Q_k goes sample by
+        sample. The passes are launch-bound (small batches, many samples per window), so fewer
+        and larger operations are most of the speed.
+        """
         torch = self.torch
         c = self._matrix(theta)
         X, u_all = self.X[rows], self.U[rows]
         n, h, n_win, n_c = self.n, self.h, X.shape[0], self.idx.size
         x = X[:, 0] + z * self.x_unit
         w = self.res_weight
+
+        def residual(x, k):
+            return torch.nan_to_num((x - X[:, k]) * w, nan=1e6, posinf=1e6, neginf=-1e6).clamp(-1e6, 1e6)
+
+        def rate(y, u):
+            return self.terms.evaluate_torch(torch.cat([y, u], dim=-1)) @ c
+
         cost = 0.0
-        blocks = None
-        s_z = s_c = None
-        if tangents:
-            # d x / d z (each window's own starts) and d x / d theta, per window
-            s_z = torch.diag(self.x_unit).expand(n_win, n, n).clone()
-            s_c = torch.zeros((n_win, n, n_c)) if "c" in tangents else None
-            blocks = {"A": torch.zeros((n_win, n, n)), "bz": torch.zeros((n_win, n))}
-            if s_c is not None:
-                blocks.update(g=torch.zeros(n_c), E=torch.zeros((n_win, n, n_c)))
-                # JᵀJ of the coefficients by BLAS syrk (half the work of a product; upper triangle)
-                hessian = np.zeros((n_c, n_c), order="F")
-
-        def accumulate(x, k):
-            nonlocal cost
-            r = torch.nan_to_num((x - X[:, k]) * w, nan=1e6, posinf=1e6, neginf=-1e6).clamp(-1e6, 1e6)
+        r = residual(x, 0)
+        cost += 0.5 * float((r * r).sum())
+        states, points = [x], []  # points: per sample, the RK4 stage points (n_win, 4·substeps, n)
+        for k in range(self.window):
+            u = u_all[:, k]
+            stage_points = []
+            for _ in range(self.substeps):
+                k1 = rate(x, u)
+                x2 = x + 0.5 * h * k1
+                k2 = rate(x2, u)
+                x3 = x + 0.5 * h * k2
+                k3 = rate(x3, u)
+                x4 = x + h * k3
+                k4 = rate(x4, u)
+                stage_points += [x, x2, x3, x4]
+                x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+            r = residual(x, k + 1)
             cost += 0.5 * float((r * r).sum())
-            if blocks is None:
-                return
-            # a window that has blown up (residuals at the clip) has no useful slope: it adds none
-            alive = ((r.abs() < 1e6).all(dim=-1) & torch.isfinite(x).all(dim=-1)).to(r.dtype)[:, None, None]
-            jz = torch.nan_to_num(s_z * w[None, :, None], nan=0.0, posinf=0.0, neginf=0.0) * alive
-            jz_t = jz.transpose(1, 2).contiguous()  # (a transposed view takes a slow batched product)
-            blocks["A"].baddbmm_(jz_t, jz)
-            blocks["bz"] += (jz_t @ r[..., None])[..., 0]
-            if s_c is not None:
-                # s_c is carried in residual units already; a non-finite entry makes its column's
-                # gradient entry non-finite, so the copy that clears them is made only then
-                flat = s_c.reshape(-1, n_c)
-                gradient = flat.T @ r.reshape(-1)
-                if not (bool(alive.all()) and bool(torch.isfinite(gradient).all())):
-                    flat = (torch.nan_to_num(s_c, nan=0.0, posinf=0.0, neginf=0.0) * alive).reshape(-1, n_c)
-                    gradient = flat.T @ r.reshape(-1)
-                if n_c:
-                    _syrk(1.0, flat.numpy().T, beta=1.0, c=hessian, trans=0, lower=0, overwrite_c=1)
-                blocks["g"] += gradient
-                blocks["E"].baddbmm_(jz_t, flat.view(n_win, n, n_c))
+            if tangents:
+                states.append(x)
+                points.append(torch.stack(stage_points, dim=1))
+        if not tangents:
+            return cost, None
+        return cost, self._tangent_blocks(c, X, u_all, states, points, "c" in tangents, residual)
 
-        def derivative(y, u, jacobian: bool):
-            """f at y, and (with ``jacobian``) its state Jacobian and the term values there."""
-            signals = torch.cat([y, u], dim=-1)
-            if not jacobian:
-                return self.terms.evaluate_torch(signals) @ c, None, None
-            values, grad = self.terms.values_and_gradient_torch(signals)  # (n_win, n_terms[, n_signals])
-            # (n_win, n, n): einsum("wts,tj->wjs", ...) as the one product it makes of it, without
-            # its parsing (the same values; the stages are launch-bound on small batches)
-            jx = torch.mm(grad[..., :n].transpose(1, 2).reshape(-1, grad.shape[1]), c).view(
-                grad.shape[0], n, n).transpose(1, 2)
-            return values @ c, jx, values
-
-        n_terms = len(self.terms)
+    def _tangent_blocks(self, c, X, u_all, states, points, coefficients: bool, residual):
+        """The Gauss-Newton blocks of one part's windows from its states and RK4 stage points
+        (:meth:`_shoot_part`): "A", "bz" (start states) and, with ``coefficients``, "H", "g", "E"."""
+        torch = self.torch
+        n, n_win, n_c = self.n, X.shape[0], self.idx.size
+        n_stages, n_terms, n_inputs = 4 * self.substeps, len(self.terms), u_all.shape[-1]
+        w = self.res_weight
+        blocks = {"A": torch.zeros((n_win, n, n)), "bz": torch.zeros((n_win, n))}
+        if coefficients:
+            blocks.update(g=torch.zeros(n_c), E=torch.zeros((n_win, n, n_c)))
+            # JᵀJ of the coefficients by BLAS syrk (half the work of a product; upper triangle)
+            hessian = np.zeros((n_c, n_c), order="F")
         # where each support coefficient sits in a (states × terms) table flattened row by row
         state_term = self.row_of * n_terms + self.term_of
         # the coefficient tangents are carried in residual units (state k's row times its residual
         # weight w_k): the Gauss-Newton blocks then read them as they are
         forcing_scale = w[:, None] * self.scale_t[None, :]
         rescale = w[:, None] / w[None, :]
-        accumulate(x, 0)
-        for k in range(self.window):
-            u = u_all[:, k]
-            sample = None  # the tangent map of this sample so far: [P | D_1 ... D_s] (below)
-            stage_values = []
-            for _ in range(self.substeps):
-                k1, a1, v1 = derivative(x, u, bool(tangents))
-                k2, a2, v2 = derivative(x + 0.5 * h * k1, u, bool(tangents))
-                k3, a3, v3 = derivative(x + 0.5 * h * k2, u, bool(tangents))
-                k4, a4, v4 = derivative(x + h * k3, u, bool(tangents))
-                x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-                if tangents:
-                    step = _rk4_tangent_map(a1, a2, a3, a4, h, forced=s_c is not None)
-                    sample = step if sample is None else torch.cat(
-                        [step[:, :, :n] @ sample, step[:, :, n:]], dim=2)
-                    stage_values += [v1, v2, v3, v4]
-            if tangents:
-                # the RK4 steps are linear in the tangents: over the sample a tangent S moves to
-                # P·S + Σ_i D_i·B_i, B_i the inhomogeneous term at stage i. Propagating the big
-                # coefficient tangents once per sample, not four times per RK4 step, is most of the
-                # pass's time saved (the tangents' memory traffic); the values are the same.
-                propagator = sample[:, :, :n]
-                s_z = propagator @ s_z
-                if s_c is not None:
-                    # B_i of coefficient (term t, equation j) is the term's value in row j, so
-                    # (D_i·B_i)[:, (t, j)] = D_i[:, j]·value_t: every pair from one small product
-                    # of the D's and the stages' term values, then the support's entries picked
-                    n_s = len(stage_values)
-                    d = sample[:, :, n:].view(n_win, n, n_s, n).transpose(2, 3).reshape(n_win, n * n, n_s)
-                    table = torch.bmm(d, torch.stack(stage_values, dim=1)).view(n_win * n, n * n_terms)
-                    # (2-D index_select: ~5x the speed of the same pick along a 3-D tensor's last axis)
-                    forcing = torch.index_select(table, 1, state_term).view(n_win, n, n_c).mul_(forcing_scale)
-                    s_c = forcing.baddbmm_(propagator * rescale, s_c)
-            accumulate(x, k + 1)
-        if s_c is not None:
+
+        def accumulate(jz, jc, r, alive):
+            """Add samples' rows: jz (m, n_win, n, n) start-state tangents, jc (m, n_win, n, n_c)
+            coefficient tangents (residual units) or None, r (m, n_win, n), alive (m, n_win)."""
+            # a window that has blown up (residuals at the clip) has no useful slope: it adds none
+            mask = alive.to(r.dtype)[..., None, None]
+            jz = torch.nan_to_num(jz * w[:, None], nan=0.0, posinf=0.0, neginf=0.0) * mask
+            jz_t = jz.transpose(-1, -2).contiguous()  # (a transposed view takes a slow batched product)
+            for i in range(jz.shape[0]):
+                blocks["A"].baddbmm_(jz_t[i], jz[i])
+                blocks["bz"] += (jz_t[i] @ r[i][..., None])[..., 0]
+            if jc is None:
+                return
+            # a non-finite entry makes its column's gradient entry non-finite, so the copy that
+            # clears them is made only then
+            flat = jc.reshape(-1, n_c)
+            gradient = flat.T @ r.reshape(-1)
+            if not (bool(alive.all()) and bool(torch.isfinite(gradient).all())):
+                jc = torch.nan_to_num(jc, nan=0.0, posinf=0.0, neginf=0.0) * mask
+                flat = jc.reshape(-1, n_c)
+                gradient = flat.T @ r.reshape(-1)
+            if n_c:
+                _add_gram(np.ascontiguousarray(flat.numpy()), hessian)
+            blocks["g"] += gradient
+            for i in range(jc.shape[0]):
+                blocks["E"].baddbmm_(jz_t[i], jc[i])
+
+        def rows_at(k0, k1):
+            """Residuals and aliveness of samples k0..k1-1, sample-major."""
+            xs = torch.stack(states[k0:k1])
+            r = torch.stack([residual(states[k], k) for k in range(k0, k1)])
+            alive = (r.abs() < 1e6).all(dim=-1) & torch.isfinite(xs).all(dim=-1)
+            return r, alive
+
+        s_z = torch.diag(self.x_unit).expand(n_win, n, n).clone()  # d x / d z (each window's own start)
+        s_c = torch.zeros((n_win, n, n_c)) if coefficients else None  # d x / d θ, residual units
+        r, alive = rows_at(0, 1)
+        accumulate(s_z[None], None, r, alive)  # the start: no coefficient enters yet
+        # samples per chunk: ~256 window-samples (the chunk's tangents ~8 MB at 300 coefficients)
+        chunk = max(1, 256 // max(n_win, 1))
+        for k0 in range(0, self.window, chunk):
+            k1 = min(self.window, k0 + chunk)
+            m = k1 - k0
+            pts = torch.stack(points[k0:k1])  # (m, n_win, n_stages, n), sample-major
+            inputs = u_all[:, k0:k1].transpose(0, 1)[:, :, None, :].expand(m, n_win, n_stages, n_inputs)
+            signals = torch.cat([pts, inputs], dim=-1).reshape(-1, n + n_inputs)
+            values, grad = self.terms.values_and_gradient_torch(signals)
+            # (points, n, n): einsum("pts,tj->pjs", ...) as the one product it makes of it
+            jx = torch.mm(grad[..., :n].transpose(1, 2).reshape(-1, n_terms), c).view(-1, n, n).transpose(1, 2)
+            jx = jx.reshape(m * n_win, self.substeps, 4, n, n)
+            maps = _rk4_tangent_map(*(jx[:, :, i].reshape(-1, n, n) for i in range(4)), self.h,
+                                    forced=coefficients).view(m * n_win, self.substeps, n, -1)
+            # the RK4 steps of a sample composed: [P | D_1 ... D_(n_stages)] (:func:`_rk4_tangent_map`)
+            sample = maps[:, 0]
+            for i in range(1, self.substeps):
+                step = maps[:, i]
+                sample = torch.cat([step[..., :n] @ sample, step[..., n:]], dim=2)
+            propagators = sample[..., :n].reshape(m, n_win, n, n)
+            tangents_z = torch.empty((m, n_win, n, n))
+            if coefficients:
+                # B_i of coefficient (term t, equation j) is the term's value in row j, so
+                # (D_i·B_i)[:, (t, j)] = D_i[:, j]·value_t: every pair from one small product of
+                # the D's and the stages' term values, then the support's entries picked
+                d = sample[..., n:].reshape(m * n_win, n, n_stages, n).transpose(2, 3).reshape(m * n_win, n * n, n_stages)
+                table = torch.bmm(d, values.view(m * n_win, n_stages, n_terms)).view(m * n_win * n, n * n_terms)
+                # (2-D index_select: ~5x the speed of the same pick along a 3-D tensor's last axis);
+                # each sample's slot then takes its tangents in place (S = P·S + forcing)
+                tangents_c = torch.index_select(table, 1, state_term).view(m, n_win, n, n_c).mul_(forcing_scale)
+                weighted = propagators * rescale
+            for i in range(m):
+                s_z = torch.bmm(propagators[i], s_z, out=tangents_z[i])
+                if coefficients:
+                    s_c = tangents_c[i].baddbmm_(weighted[i], s_c)
+            r, alive = rows_at(k0 + 1, k1 + 1)
+            accumulate(tangents_z, tangents_c if coefficients else None, r, alive)
+        if coefficients:
             upper = torch.from_numpy(np.triu(hessian))
             blocks["H"] = upper + upper.T - torch.diag(torch.diagonal(upper))
-        return cost, blocks
+        return blocks
 
     def _smallsignal_residuals(self, theta):
         """Around the pre-step steady state of each small-signal record, the model's linearisation
