@@ -337,6 +337,24 @@ def test_term_gradients_by_the_product_rule_match_autodiff():
     assert not TermSet(["vc_d*ig_d + vc_q*ig_q", "Abs(il_q)"], signals).thread_safe_gradient()
 
 
+def test_terms_with_numbers_inside_functions_evaluate_in_torch():
+    """A model JSON may hold terms whose generated code hands a plain number to a function
+    (sqrt(2)*x calls sqrt(2); Min(x, 1) passes 1): torch's functions reject those, so the
+    compiled functions take them (the numpy path always did)."""
+    import torch
+
+    from pisml_ros.model.expressions import TermSet
+
+    signals = STATE_NAMES + INPUT_NAMES
+    terms = ["sqrt(2)*il_d", "Min(il_d, 1)", "Max(0.5, il_q)", "exp(-1)*vc_d + cos(1)*ig_q", "Abs(il_q) + sign(-2)"]
+    ts = TermSet(terms, signals)
+    z = np.random.default_rng(4).normal(size=(7, len(signals)))
+    np.testing.assert_allclose(ts.evaluate_torch(torch.tensor(z)).numpy(), ts.evaluate(z), rtol=1e-14, atol=1e-14)
+    gradient = ts.gradient_torch(torch.tensor(z)).numpy()
+    np.testing.assert_allclose(gradient[:, 0, signals.index("il_d")], np.sqrt(2), rtol=1e-14)
+    np.testing.assert_allclose(gradient[:, 1, signals.index("il_d")], (z[:, signals.index("il_d")] < 1).astype(float))
+
+
 def test_data_coverage_flags_operating_points_outside_the_training_inputs():
     from pisml_ros.analysis.operating_point import coverage_note, data_coverage
     from pisml_ros.plant import InverterPlant

@@ -81,10 +81,26 @@ def _to_sympy(node, symbols):
 
 
 def _torch_module():
+    """The functions sympy's printer may call in compiled terms, as torch functions that also take
+    plain numbers: the generated code passes them as they are written (``sqrt(2)*x`` calls sqrt
+    on 2, ``Min(x, 1)`` passes 1), which torch's functions reject."""
     import torch
 
-    return {"sin": torch.sin, "cos": torch.cos, "exp": torch.exp, "tanh": torch.tanh, "sqrt": torch.sqrt,
-            "Abs": torch.abs, "sign": torch.sign, "Min": torch.minimum, "Max": torch.maximum}
+    def numeric(fn):
+        def apply(*args):
+            if all(torch.is_tensor(a) for a in args):
+                return fn(*args)
+            like = next((a for a in args if torch.is_tensor(a)), None)
+            if like is None:  # constants only: a plain number, as the generated code expects
+                return fn(*(torch.tensor(float(a), dtype=torch.float64) for a in args)).item()
+            return fn(*(a if torch.is_tensor(a) else torch.tensor(float(a), dtype=like.dtype, device=like.device)
+                        for a in args))
+
+        return apply
+
+    return {name: numeric(fn) for name, fn in (
+        ("sin", torch.sin), ("cos", torch.cos), ("exp", torch.exp), ("tanh", torch.tanh), ("sqrt", torch.sqrt),
+        ("Abs", torch.abs), ("sign", torch.sign), ("Min", torch.minimum), ("Max", torch.maximum))}
 
 
 class TermSet:
