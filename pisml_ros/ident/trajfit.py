@@ -378,8 +378,8 @@ class _ShootingProblem:
 
     Parameters are the scaled support coefficients θ (coefficient / ``scale``) and each window's
     start-state offset z (in noise units). The Gauss-Newton normal equations come from forward
-    sensitivities integrated beside the states (f is linear in the coefficients, so ∂f/∂c is a term
-    value); the start states are eliminated window by window (Schur complement, as in bundle
+    sensitivities of the RK4 steps (f is linear in the coefficients, so ∂f/∂c is a term value;
+    :meth:`_tangent_blocks`); the start states are eliminated window by window (Schur complement, as in bundle
     adjustment), so every step is exact at any problem size. Hand-written because neither scipy
     nor torch solves least squares with this block structure: ``scipy.optimize.least_squares`` on
     the full sparse Jacobian needed thousands of LSMR products per step at the benchmark's sizes.
@@ -413,9 +413,6 @@ class _ShootingProblem:
         self.row_of = torch.tensor(self.idx % self.shape[1])
         self.scale_t = torch.tensor(self.scale)
         self.idx_t = torch.tensor(self.idx)
-        self.support_cols = torch.arange(self.idx.size)
-        # the same entries of a (states × coefficients) tangent flattened row by row
-        self.support_flat = self.row_of * self.idx.size + self.support_cols
         # residuals are (x - x_measured) * weight / sqrt(window + 1); z is in units of 1 / weight
         self.res_weight = torch.tensor(fitter.weights) / np.sqrt(fitter.window + 1)
         self.x_unit = torch.tensor(1.0 / fitter.weights)
