@@ -551,7 +551,8 @@ class _ShootingProblem:
         cost = 0.0
         r = residual(x, 0)
         cost += 0.5 * float((r * r).sum())
-        states, points = [x], []  # points: per sample, the RK4 stage points (n_win, 4·substeps, n)
+        # with tangents: per sample the state, its residuals and the RK4 stage points (n_win, 4·substeps, n)
+        states, residuals, points = [x], [r], []
         for k in range(self.window):
             u = u_all[:, k]
             stage_points = []
@@ -569,12 +570,13 @@ class _ShootingProblem:
             cost += 0.5 * float((r * r).sum())
             if tangents:
                 states.append(x)
+                residuals.append(r)
                 points.append(torch.stack(stage_points, dim=1))
         if not tangents:
             return cost, None
-        return cost, self._tangent_blocks(c, X, u_all, states, points, "c" in tangents, residual)
+        return cost, self._tangent_blocks(c, X, u_all, states, residuals, points, "c" in tangents)
 
-    def _tangent_blocks(self, c, X, u_all, states, points, coefficients: bool, residual):
+    def _tangent_blocks(self, c, X, u_all, states, residuals, points, coefficients: bool):
         """The Gauss-Newton blocks of one part's windows from its states and RK4 stage points
         (:meth:`_shoot_part`): "A", "bz" (start states) and, with ``coefficients``, "H", "g", "E"."""
         torch = self.torch
@@ -622,7 +624,7 @@ class _ShootingProblem:
         def rows_at(k0, k1):
             """Residuals and aliveness of samples k0..k1-1, sample-major."""
             xs = torch.stack(states[k0:k1])
-            r = torch.stack([residual(states[k], k) for k in range(k0, k1)])
+            r = torch.stack(residuals[k0:k1])
             alive = (r.abs() < 1e6).all(dim=-1) & torch.isfinite(xs).all(dim=-1)
             return r, alive
 
