@@ -168,6 +168,15 @@ def test_shooting_normal_equations_match_autodiff(truth, threads):
     for name, value in expected.items():
         np.testing.assert_allclose(blocks[name].numpy(), value.numpy(), rtol=1e-9, atol=1e-9 * float(value.abs().max()))
     assert problem.cost(theta, z) == pytest.approx(0.5 * float((r ** 2).sum() + (rs ** 2).sum()), rel=1e-12)
+    # a cost pass keeps its states, and the normal equations at its point start from them ...
+    kept = problem.normal_equations(theta, z)
+    for name in expected:
+        np.testing.assert_allclose(kept[name].numpy(), blocks[name].numpy(), rtol=1e-12, atol=1e-12 * float(blocks[name].abs().max()))
+    problem._kept[3][:] = [2 * value for value in problem._kept[3]]  # (its residuals: seen in the gradient)
+    assert not torch.allclose(problem.normal_equations(theta, z)["g"], blocks["g"])
+    # ... only there
+    problem.cost(theta, z + 0.01)
+    np.testing.assert_allclose(problem.normal_equations(theta, z)["g"].numpy(), blocks["g"].numpy(), rtol=1e-12)
     # the profiled Hessian: the Schur complement of the start states in the dense JᵀJ
     dense = torch.cat([torch.cat([jc.reshape(-1, jc.shape[-1]), torch.block_diag(*jz)], dim=1),
                        torch.cat([js, torch.zeros((js.shape[0], 13 * n_win))], dim=1)]).numpy()
@@ -353,6 +362,31 @@ def test_terms_with_numbers_inside_functions_evaluate_in_torch():
     gradient = ts.gradient_torch(torch.tensor(z)).numpy()
     np.testing.assert_allclose(gradient[:, 0, signals.index("il_d")], np.sqrt(2), rtol=1e-14)
     np.testing.assert_allclose(gradient[:, 1, signals.index("il_d")], (z[:, signals.index("il_d")] < 1).astype(float))
+
+
+@pytest.mark.parametrize("terms", [
+    ["1", "il_d", "il_d*vc_q", "vc_d**2", "Pf*ig_q*vc_d", "ug*cos(theta_g - delta)", "ug*sin(theta_g - delta)"],
+    ["vc_d*ig_d + vc_q*ig_q", "vc_q*ig_d - vc_d*ig_q", "tanh(il_q)", "il_d/(1 + il_d**2)", "ug"],
+    ["vc_d*ig_d + vc_q*ig_q", "Min(il_d, 1)"],  # a derivative torch cannot run here: the full gradients
+])
+def test_field_jacobian_in_torch_matches_the_term_gradients(terms):
+    """values_and_jacobian_torch contracts only the terms' varying state derivatives with C; it
+    must give what the full term gradients (numpy, sympy's derivatives) contracted with C give."""
+    import torch
+
+    from pisml_ros.model.expressions import TermSet
+
+    signals = STATE_NAMES + INPUT_NAMES
+    n = len(STATE_NAMES)
+    rng = np.random.default_rng(7)
+    ts = TermSet(terms, signals)
+    z = rng.normal(size=(11, len(signals)))
+    c = rng.normal(size=(len(terms), n)) * (rng.random((len(terms), n)) < 0.5)
+    values, jac = ts.values_and_jacobian_torch(torch.tensor(z), torch.tensor(c), n)
+    expected = np.einsum("pts,tj->pjs", ts.gradient(z)[..., :n], c)
+    np.testing.assert_allclose(values.numpy(), ts.evaluate(z), rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(jac.numpy(), expected, rtol=1e-12, atol=1e-12)
+    assert jac.shape == (11, n, n)
 
 
 def test_data_coverage_flags_operating_points_outside_the_training_inputs():

@@ -404,6 +404,7 @@ class _ShootingProblem:
         # torch.func's forward-mode autodiff (TermSet.thread_safe_gradient) must stay on one thread
         self.threads = fitter.threads if fitter.terms.thread_safe_gradient() else 1
         self._pool = None
+        self._kept = None  # the last cost pass: (θ, z, states, residuals, RK4 stage points)
         self.shape = coef0.shape
         self.idx = np.flatnonzero(mask.ravel())
         scale = np.abs(coef0.ravel()[self.idx])
@@ -482,9 +483,13 @@ class _ShootingProblem:
         flat = torch.zeros(int(np.prod(self.shape)), dtype=theta.dtype)
         return flat.index_put((self.idx_t,), theta * self.scale_t).reshape(self.shape)
 
-    def _shoot(self, theta, z, tangents: str = "", beside=None):
+    def _shoot(self, theta, z, tangents: str = "", beside=None, keep: bool = False):
         """Integrate every window from its start; residuals, and the Gauss-Newton blocks when
         ``tangents`` names them ("z": start states only; "zc": also the coefficients).
+
+        ``keep`` keeps this pass's states (a cost evaluation: the Levenberg-Marquardt loop asks for
+        the normal equations at the point it has just evaluated when it takes the step); a pass with
+        tangents at the kept θ and z starts from them instead of integrating again.
 
         With ``threads`` > 1 the windows are shared out in contiguous parts, one thread each (the
         windows are independent; torch releases the GIL in its kernels, and one part per thread keeps
@@ -499,16 +504,19 @@ class _ShootingProblem:
         """
         torch = self.torch
         parts = min(self.threads, self.n_windows) if tangents == "zc" else 1
+        kept = self._kept if tangents and self._kept is not None and torch.equal(self._kept[0], theta) \
+            and torch.equal(self._kept[1], z) else None
         if parts <= 1:
-            return (*self._shoot_part(theta, z, slice(None), tangents), beside() if beside else None)
+            return (*self._shoot_part(theta, z, slice(None), tangents, keep, kept), beside() if beside else None)
         bounds = np.linspace(0, self.n_windows, parts + 1).round().astype(int)
         slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
         if self._pool is None:
             from concurrent.futures import ThreadPoolExecutor
 
-            self.terms.values_and_gradient_torch(torch.cat([self.X[:1, 0], self.U[:1, 0]], dim=-1))  # compiled once
+            self.terms.values_and_jacobian_torch(torch.cat([self.X[:1, 0], self.U[:1, 0]], dim=-1),
+                                                 self._matrix(theta), self.n)  # compiled once
             self._pool = ThreadPoolExecutor(parts, "pisml-shoot")
-        futures = [self._pool.submit(self._shoot_part, theta, z[part], part, tangents) for part in slices]
+        futures = [self._pool.submit(self._shoot_part, theta, z[part], part, tangents, False, kept) for part in slices]
         extra = beside() if beside else None
         results = [future.result() for future in futures]
         cost = sum(c for c, _ in results)
@@ -525,8 +533,9 @@ class _ShootingProblem:
             self._pool.shutdown()
             self._pool = None
 
-    def _shoot_part(self, theta, z, rows: slice, tangents: str = ""):
-        """:meth:`_shoot` over the windows ``rows`` (``z``: their start offsets).
+    def _shoot_part(self, theta, z, rows: slice, tangents: str = "", keep: bool = False, kept=None):
+        """:meth:`_shoot` over the windows ``rows`` (``z``: their start offsets); ``keep`` and
+        ``kept`` as there.
 
         The states go sample by sample (RK4 is sequential). With ``tangents`` the RK4 stage points
         are kept, and a chunk of samples at a time the model's Jacobians there, each sample's
@@ -538,6 +547,10 @@ class _ShootingProblem:
         torch = self.torch
         c = self._matrix(theta)
         X, u_all = self.X[rows], self.U[rows]
+        if kept is not None:
+            states, residuals, points = ([value[rows] for value in values] for values in kept[2:])
+            cost = 0.5 * float(torch.stack(residuals).square().sum())
+            return cost, self._tangent_blocks(c, X, u_all, states, residuals, points, "c" in tangents)
         n, h, n_win, n_c = self.n, self.h, X.shape[0], self.idx.size
         x = X[:, 0] + z * self.x_unit
         w = self.res_weight
@@ -568,10 +581,12 @@ class _ShootingProblem:
                 x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
             r = residual(x, k + 1)
             cost += 0.5 * float((r * r).sum())
-            if tangents:
+            if tangents or keep:
                 states.append(x)
                 residuals.append(r)
                 points.append(torch.stack(stage_points, dim=1))
+        if keep:
+            self._kept = (theta.clone(), z.clone(), states, residuals, points)
         if not tangents:
             return cost, None
         return cost, self._tangent_blocks(c, X, u_all, states, residuals, points, "c" in tangents)
@@ -640,9 +655,7 @@ class _ShootingProblem:
             pts = torch.stack(points[k0:k1])  # (m, n_win, n_stages, n), sample-major
             inputs = u_all[:, k0:k1].transpose(0, 1)[:, :, None, :].expand(m, n_win, n_stages, n_inputs)
             signals = torch.cat([pts, inputs], dim=-1).reshape(-1, n + n_inputs)
-            values, grad = self.terms.values_and_gradient_torch(signals)
-            # (points, n, n): einsum("pts,tj->pjs", ...) as the one product it makes of it
-            jx = torch.mm(grad[..., :n].transpose(1, 2).reshape(-1, n_terms), c).view(-1, n, n).transpose(1, 2)
+            values, jx = self.terms.values_and_jacobian_torch(signals, c, n)
             jx = jx.reshape(m * n_win, self.substeps, 4, n, n)
             maps = _rk4_tangent_map(*(jx[:, :, i].reshape(-1, n, n) for i in range(4)), self.h,
                                     forced=coefficients).view(m * n_win, self.substeps, n, -1)
@@ -790,7 +803,7 @@ class _ShootingProblem:
 
     def cost(self, theta, z) -> float:
         with self.torch.no_grad():
-            traj, _, _ = self._shoot(theta, z)
+            traj, _, _ = self._shoot(theta, z, keep=True)
             ss = self._smallsignal_residuals(theta)
         stab, _ = self._stability_residuals(theta)
         eq, _ = self._equilibrium_residuals(theta)
