@@ -217,8 +217,9 @@ class TermSet:
         return self._derivative_exprs
 
     def _torch_plan(self) -> bool:
-        """Compile the product plan for torch once (factor functions, index); False when the terms
-        are not all products of factors."""
+        """Compile the product plan for torch once (the functions of the factors that are not plain
+        signals, and the index into :meth:`_factor_base`); False when the terms are not all products
+        of factors."""
         if self._plan is None:
             import torch
 
@@ -227,23 +228,30 @@ class TermSet:
                 self._plan = False
             else:
                 factors, index = plan
-                fn = sympy.lambdify(self._symbols, factors, modules=[_torch_module(), "math"], cse=True) \
-                    if factors else None
-                self._plan = (fn, torch.as_tensor(index))
-                self._factors = factors  # their derivatives: :meth:`gradient_torch`
+                # the base is [1, every signal, the other factors]: the signals go in as one block, not
+                # a generated function's column each (the refinement's state pass evaluates the terms
+                # at every RK4 stage on small batches, where each operation launched counts)
+                others = [f for f in factors if f not in self._symbols]
+                position = [0] + [1 + self._symbols.index(f) if f in self._symbols
+                                  else 1 + len(self._symbols) + others.index(f) for f in factors]
+                fn = sympy.lambdify(self._symbols, others, modules=[_torch_module(), "math"], cse=True) \
+                    if others else None
+                self._plan = (fn, torch.as_tensor(np.asarray(position)[index]))
+                self._factors = list(self._symbols) + others  # the base's entries, for :meth:`gradient_torch`
         return self._plan is not False
 
     def _factor_base(self, z):
-        """``[1, factor values...]`` of the product plan at ``z``: (..., 1 + n_factors)."""
+        """``[1, signals..., other factor values...]`` of the product plan at ``z``:
+        (..., 1 + n_signals + n_other_factors)."""
         import torch
 
         fn, index = self._plan
         if index.device != z.device:  # training on an accelerator
             self._plan = (fn, index.to(z.device))
-        cols = [torch.ones(z.shape[:-1], dtype=z.dtype, device=z.device)]
+        cols = [torch.ones(z.shape[:-1] + (1,), dtype=z.dtype, device=z.device), z]
         if fn is not None:
-            cols += [_column(v, z) for v in fn(*z.unbind(-1))]
-        return torch.stack(cols, dim=-1)
+            cols.append(torch.stack([_column(v, z) for v in fn(*z.unbind(-1))], dim=-1))
+        return torch.cat(cols, dim=-1)
 
     def values_and_gradient_torch(self, z):
         """:meth:`evaluate_torch` and :meth:`gradient_torch` at ``z`` in one pass (the factors once)."""
