@@ -183,7 +183,7 @@ class TermSet:
         import torch
 
         if self._torch_plan():
-            return self._factor_base(z)[..., self._plan[1]].prod(dim=-1)
+            return self._gathered(self._factor_base(z)).prod(dim=-1)
         if self._torch is None:
             self._torch = sympy.lambdify(self._symbols, self.exprs, modules=[_torch_module(), "math"], cse=True)
         cols = self._torch(*z.unbind(-1))
@@ -253,12 +253,20 @@ class TermSet:
             cols.append(torch.stack([_column(v, z) for v in fn(*z.unbind(-1))], dim=-1))
         return torch.cat(cols, dim=-1)
 
+    def _gathered(self, base):
+        """Each term's factors from :meth:`_factor_base`'s ``base``: (..., n_terms, degree)."""
+        import torch
+
+        index = self._plan[1]
+        # one index_select of the flattened index (~2x quicker than base[..., index] on small batches)
+        return torch.index_select(base, -1, index.view(-1)).view(base.shape[:-1] + index.shape)
+
     def values_and_gradient_torch(self, z):
         """:meth:`evaluate_torch` and :meth:`gradient_torch` at ``z`` in one pass (the factors once)."""
         if not self._torch_plan():
             return self.evaluate_torch(z), self.gradient_torch(z)
         base = self._factor_base(z)
-        gathered = base[..., self._plan[1]]
+        gathered = self._gathered(base)
         return gathered.prod(dim=-1), self._product_rule(z, gathered)
 
     def values_and_jacobian_torch(self, z, coefficients, n_states: int):
@@ -349,7 +357,7 @@ class TermSet:
             jac = torch.func.jacfwd(self.evaluate_torch)
             return torch.func.vmap(jac)(z.reshape(-1, z.shape[-1])).reshape(z.shape[:-1] + (len(self), z.shape[-1]))
         base = self._factor_base(z) if base is None else base
-        return self._product_rule(z, base[..., self._plan[1]])
+        return self._product_rule(z, self._gathered(base))
 
     def _product_rule(self, z, gathered):
         """The product plan's term gradients at ``z`` from its gathered factor values
