@@ -97,9 +97,9 @@ class IdentConfig:
     # 0.58 / 0.74, 0.40 / 0.59, 0.25 / 0.72, 63-81 s; rejected steps not counted (15, 10, 10 accepted
     # ones, polish too): 0.38 / 0.35, 0.39 / 0.50, 0.64 / 0.72, 0.37 / 0.87 (no equilibrium at ug
     # 0.2), 0.58 / 1.56, 86-96 s; (30, 10, 10) with refine_stage_tolerance 1e-4: 0.39 / 0.82,
-    # 0.55 / 0.53, 87 s (the times in this comment are before stop 32's faster Gauss-Newton pass:
-    # the same models, recordings 0-4 in 77-94 s instead of 89-130 s). The price: the 60 s target
-    # of a 40 dB fit is missed (`--set refine_growing_evaluations=15,10,10` for the old speed)
+    # 0.55 / 0.53, 87 s (the times in this comment are before stops 32 and 33 made the Gauss-Newton
+    # pass faster: the same models, recordings 0-4 in 52-61 s, median 53.8 s, instead of 89-130 s;
+    # `--set refine_growing_evaluations=15,10,10` gives the old models in about two thirds of the time)
     refine_growing_evaluations: tuple = (30, 20, 20)
     # RK4 steps per sample in the growing-window stages (the polish keeps 2). Measured at 1 (40 dB,
     # recordings 0 / 1 / 2): 53 / 48 / 48 s instead of ~70 s, but recording 0's pruned model was
