@@ -261,6 +261,7 @@ def test_a_bag_recorded_from_the_live_graph_replays_to_the_same_model(probe, tmp
         time.sleep(1.0)  # the recorder gets the model too
         assert stop_node(recorder) == 0, recorder.log_path.read_text()
         assert "wrote" in recorder.log_path.read_text()
+        assert "XMLPARSER" not in recorder.log_path.read_text()  # Fast DDS took the loopback profile whole
         assert stop_all(ident, meas) == [0, 0]
         meas = None
         # the bag holds the samples as they travelled, and the model

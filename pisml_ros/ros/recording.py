@@ -207,11 +207,12 @@ def record(topics, out, duration: float | None = None, storage: str = "mcap", lo
         rclpy.try_shutdown()
 
 
-def _drain(node, recorder, idle: float = 0.2, limit: float = 5.0) -> None:
+def _drain(node, recorder, idle: float = 0.5, limit: float = 5.0) -> None:
     """Write the messages that already reached this process before the bag closes: a stop ends the
     listening, not the delivery of what waits in the subscriptions' queues (a recorder starved of
-    CPU by a training beside it lags behind the graph). Until ``idle`` seconds bring nothing, at
-    most ``limit`` seconds; a second Ctrl-C ends it."""
+    CPU by a training beside it lags behind the graph), nor the repair of a lost sample, which
+    comes with the writer's next heartbeat (100 ms in config/fastdds_loopback.xml). Until ``idle``
+    seconds bring nothing, at most ``limit`` seconds; a second Ctrl-C ends it."""
     if not rclpy.ok():
         return
     deadline = time.monotonic() + limit
