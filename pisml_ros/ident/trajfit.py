@@ -564,7 +564,7 @@ class _ShootingProblem:
         cost = 0.0
         r = residual(x, 0)
         cost += 0.5 * float((r * r).sum())
-        # with tangents: per sample the state, its residuals and the RK4 stage points (n_win, 4·substeps, n)
+        # with tangents or keep: per sample the state, its residuals and the RK4 stage points (n_win, 4·substeps, n)
         states, residuals, points = [x], [r], []
         for k in range(self.window):
             u = u_all[:, k]
