@@ -680,6 +680,44 @@ def test_selection_excuses_a_fold_just_before_an_edge_rest_point_that_the_model_
     assert none["chosen"] == "re-fit +300 %" and none["inconsistent_rest_points"]["re-fit +300 %"] == 3
 
 
+def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
+    from pisml_ros.ident.estimators import _grid_inputs, _selected
+
+    # y' = ug - a - y**2 has the stable equilibrium y = sqrt(ug - a) for ug > a and none below: with
+    # a = 0.7 the branch folds at ug 0.7, below the records' rest points (ug 0.8 and 1.0), as
+    # recording 4's chosen model did at 40 dB; with a = 0 it reaches every grid voltage
+    terms = ["1", "x", "ug", "y**2"]
+
+    def model(a, b=0.0):  # b (1 - x) in y' adds two coefficients that vanish at rest (x = 1)
+        return ExplicitModel(("x", "y"), ("ug", "theta_g"), terms,
+                             np.array([[1.0, b - a], [-1, -b], [0, 1], [0, -1]]), {})
+
+    points = [{"inputs": [0.8, 0.3], "state": [1.0, 0.3]}, {"inputs": [1.0, 0.1], "state": [1.0, 0.55]}]
+    template = ExplicitModel(("x", "y"), ("ug", "theta_g"), terms, np.zeros((4, 2)), {"reference_points": points})
+    grid = (0.2, 0.4, 0.6, 0.8, 1.0)
+    # the grid voltages at grid phase 0, other inputs (none here) as at the lowest rest point
+    assert [list(v) for v in _grid_inputs(template, grid)] == [[g, 0.0] for g in grid]
+    assert _grid_inputs(template, ()) == []
+    candidates = {"pruned +0.1 % x3": model(0.7), "pruned +0.1 %": model(0.0, 0.01), "refined": model(0.0, 0.01)}
+    scores = {"pruned +0.1 % x3": 0.02, "pruned +0.1 %": 0.03, "refined": float("inf")}
+    # both prunings are consistent with the rest points: without the grid the better score wins,
+    # the sparser model by the tolerance
+    assert _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0).metadata["selection"][
+        "chosen"] == "pruned +0.1 % x3"
+    selection = _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0,
+                          equilibrium_grid=grid).metadata["selection"]
+    assert selection["chosen"] == "pruned +0.1 %"
+    assert selection["missing_equilibria"] == {"pruned +0.1 % x3": 3, "pruned +0.1 %": 0}
+    # the grid only breaks ties among the candidates consistent with the rest points: one with a
+    # whole branch but unstable at the rest points (y' = y**2 - ug: the branch y = -sqrt(ug) is
+    # stable, the rest states sit near the unstable one) does not win
+    candidates["pruned +0.1 %"] = ExplicitModel(("x", "y"), ("ug", "theta_g"), terms,
+                                                np.array([[1.0, 0], [-1, 0], [0, -1], [0, 1]]), {})
+    selection = _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0,
+                          equilibrium_grid=grid).metadata["selection"]
+    assert selection["chosen"] == "pruned +0.1 % x3" and selection["inconsistent_rest_points"]["pruned +0.1 %"] == 2
+
+
 def test_reference_points_add_one_point_per_operating_point_of_the_small_signal_records(train, small):
     from pisml_ros.data.dataset import steady_start_mean
     from pisml_ros.ident.backbone import reference_points
