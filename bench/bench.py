@@ -126,6 +126,14 @@ def machine() -> str:
     return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
+def missing_text(row) -> str:
+    """The ug points of the grid where a run's model has no equilibrium (as the analysis finds it):
+    no spectrum there, and no analysis; "none", or "—" for a failed fit."""
+    if "error" in row or "no_equilibrium" not in row:
+        return "—"
+    return ", ".join(f"{g}" for g in row["no_equilibrium"]) or "none"
+
+
 def spurious_text(row) -> str:
     """The ug points of a run's spurious unstable modes, those inside the ug range the model was
     identified on marked "(in data)"; "none", or "error" for a failed fit."""
@@ -226,21 +234,23 @@ def write_markdown(results, path):
              "OOD = sag to 0.4 p.u., 20–40 ms. W = Wasserstein distance of spectra (1/s). "
              "'—' = failed (diverged / no equilibrium). Spurious unstable: ug points (0.2–1.1) where the model "
              "has an unstable mode and the plant none; '(in data)': inside the grid voltages the training "
-             "and small-signal records span (elsewhere the model extrapolates).", "",
+             "and small-signal records span (elsewhere the model extrapolates). No equilibrium: ug points of "
+             "the grid (0.2–1.2, where the plant has one) where the analysis finds none for the model (no "
+             "spectrum, no stability verdict there).", "",
              "Rd terms: how many of the six current×current monomials that vo = vc + Rd·(il − ig) brings "
              "into d(Pf)/dt and d(Qf)/dt the explicit model has.", "",
              "ΔQ / ΔP op.: the largest error of the model's operating point (its equilibrium, as the analysis "
              f"finds it) in reactive / active power over ug {', '.join(map(str, OPERATING_POINT_GRID))} against "
              "the plant's, p.u. ('—': no equilibrium at one of them).", "",
              "| plant | noise | method | IOD % | OOD % | W(ug 0.8) | W mean 0.2–1.2 | spurious unstable | "
-             "ΔQ / ΔP op. | nonzero params | Rd terms | time s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "no equilibrium | ΔQ / ΔP op. | nonzero params | Rd terms | time s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results["runs"]:
         if r.get("sweep") != "main":
             continue
         lines.append(f"| {r['plant']} | {r['noise']} | {r['method']} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
                      f"{fmt(r.get('wasserstein_ug08'))} | {fmt(r.get('wasserstein_mean'))} | "
-                     f"{spurious_text(r)} | {fmt(r.get('op_dq'), 2)} / {fmt(r.get('op_dp'), 2)} | "
+                     f"{spurious_text(r)} | {missing_text(r)} | {fmt(r.get('op_dq'), 2)} / {fmt(r.get('op_dp'), 2)} | "
                      f"{r.get('n_parameters', '—')} | {fmt(r.get('rd_terms_found')) + ('/6' if 'rd_terms_found' in r else '')} | {fmt(r.get('seconds'))} |")
     hyb = [r for r in results["runs"] if r.get("sweep_hybrid") and r.get("sweep") == "main"]
     if hyb:
@@ -261,12 +271,13 @@ def write_markdown(results, path):
         rows = [r for r in results["runs"] if r.get("sweep") == key]
         if rows:
             lines += ["", f"## {title} (standard plant, pisml)", "",
-                      f"| {key} | IOD % | OOD % | W(ug 0.8) | spurious unstable | ΔQ / ΔP op. | parameters | time s |",
-                      "|---|---|---|---|---|---|---|---|"]
+                      f"| {key} | IOD % | OOD % | W(ug 0.8) | spurious unstable | no equilibrium | ΔQ / ΔP op. | "
+                      "parameters | time s |",
+                      "|---|---|---|---|---|---|---|---|---|"]
             for r in rows:
                 spurious = spurious_text(r)
                 lines.append(f"| {r[key]} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
-                             f"{fmt(r.get('wasserstein_ug08'))} | {spurious} | "
+                             f"{fmt(r.get('wasserstein_ug08'))} | {spurious} | {missing_text(r)} | "
                              f"{fmt(r.get('op_dq'), 2)} / {fmt(r.get('op_dp'), 2)} | {r.get('n_parameters', '—')} | "
                              f"{fmt(r.get('seconds'))} |")
     spread = recording_spread(results["runs"])
@@ -277,7 +288,8 @@ def write_markdown(results, path):
                   f"operating-point ΔQ {fmt(spread['op_dq_median'], 2)} / {fmt(spread['op_dq_worst'], 2)} p.u.; "
                   f"within IOD ≤ 0.5 % and OOD ≤ 1.0 %: {spread['within_targets']} of {spread['recordings']}; with a "
                   f"spurious unstable mode or failed: {spread['spurious']} (a spurious mode inside the data's ug "
-                  f"range: {spread.get('spurious_in_data', '—')})."]
+                  f"range: {spread.get('spurious_in_data', '—')}); without an equilibrium at some ug of the grid: "
+                  f"{spread.get('missing_equilibrium', '—')}."]
     lines += ["", "Figures: bench/figures/spectra_*.png (eigenvalues at ug 0.8, model vs truth).", ""]
     path.write_text("\n".join(lines))
 
@@ -303,6 +315,7 @@ def recording_spread(runs: list) -> dict | None:
     out["within_targets"] = sum(i <= 0.5 and o <= 1.0 for i, o in zip(values("iod"), values("ood")))
     out["spurious"] = sum(bool(r.get("spurious_unstable")) or "error" in r for r in rows)
     out["spurious_in_data"] = sum(" (in data)" in spurious_text(r) for r in rows)
+    out["missing_equilibrium"] = sum(bool(r.get("no_equilibrium")) for r in rows)
     return out
 
 

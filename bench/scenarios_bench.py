@@ -88,7 +88,7 @@ def main(argv=None) -> int:
 
 def write(args, rows, started, final=False):
     """The results JSON after every fit (a crash loses nothing) and the markdown table."""
-    from bench import fmt, machine, spurious_text
+    from bench import fmt, machine, missing_text, spurious_text
 
     result = {"complete": final, "command": "python bench/scenarios_bench.py " + " ".join(sys.argv[1:]),
               "date": time.strftime("%Y-%m-%d"),
@@ -114,7 +114,7 @@ def write(args, rows, started, final=False):
         lines.append(f"| {r['scenario']} | {r['seed']} | {r['noise']}{' (kept)' if r.get('kept') else ''} | "
                      f"{fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
                      f"{fmt(r.get('wasserstein_ug08'))} | {r.get('n_parameters', '—')} | {spurious_text(r)} | "
-                     f"{', '.join(map(str, r.get('no_equilibrium', []))) or 'none'} | {fmt(r.get('op_dq'), 2)} | "
+                     f"{missing_text(r)} | {fmt(r.get('op_dq'), 2)} | "
                      f"{r['seconds']:.0f} |")
     lines += ["", "Within the issue's targets (clean: IOD ≤ 0.05 %, OOD ≤ 0.1 %; noisy: IOD ≤ 0.5 %, OOD ≤ 1 %) "
               "and with no spurious unstable mode:", ""]
