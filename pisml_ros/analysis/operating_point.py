@@ -116,15 +116,16 @@ def stability_at_points(model, points) -> list:
     return [None if growth is None else bool(growth < 0) for growth in growth_rates_at_points(model, points)]
 
 
-def growth_rates_at_points(model, points) -> list:
+def growth_rates_at_points(model, points, at=None) -> list:
     """The largest real part of the eigenvalues (1/s) of an explicit ``model``'s equilibrium at each
-    operating point of ``points`` (as :func:`stability_at_points`), None where no equilibrium was found."""
+    operating point of ``points`` (as :func:`stability_at_points`), None where no equilibrium was found.
+    ``at``: input vectors to evaluate at instead, the equilibrium search still seeded by ``points``."""
     from ..model import ExplicitModel
 
     probe = ExplicitModel(model.state_names, model.input_names, model.terms, model.coefficients,
                           {"reference_points": list(points)})
     rates = []
-    for point in points:
+    for point in (points if at is None else [{"inputs": inputs} for inputs in at]):
         inputs = [float(v) for v in point["inputs"]]
         try:
             rates.append(float(np.max(probe.eigenvalues(*inputs).real)))

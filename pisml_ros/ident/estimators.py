@@ -220,18 +220,7 @@ def _missing_equilibria(name: str, candidates: dict, points: list, grid_inputs: 
     finds it (from the rest ``points``, then continuation in the inputs); cached by name."""
     key = (name, "missing equilibria", tuple(map(tuple, grid_inputs)))
     if key not in cache:
-        model = candidates[name]
-        probe = ExplicitModel(model.state_names, model.input_names, model.terms, model.coefficients,
-                              {"reference_points": list(points)})
-        missing = 0
-        for inputs in grid_inputs:
-            try:
-                with np.errstate(all="ignore"):
-                    found = np.all(np.isfinite(probe.equilibrium(*inputs)))
-            except (RuntimeError, ValueError, np.linalg.LinAlgError, FloatingPointError):
-                found = False
-            missing += not found
-        cache[key] = missing
+        cache[key] = sum(rate is None for rate in growth_rates_at_points(candidates[name], points, at=grid_inputs))
     return cache[key]
 
 
@@ -495,7 +484,7 @@ class PISML(_Estimator):
             # refinement takes most of the time: the best explicit model so far goes out first
             preliminary = _selected(explicit, candidates, scores, verdicts=verdicts,
                                     unstable_rate=cfg.selection_unstable_rate, hold=hold,
-                             equilibrium_grid=cfg.selection_equilibrium_grid)
+                                    equilibrium_grid=cfg.selection_equilibrium_grid)
             preliminary.metadata["stage"] = "explicit (before refinement)"
             self._emit("explicit (before refinement)", 0.7, model=preliminary)
             started = time.monotonic()
