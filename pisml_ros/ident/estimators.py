@@ -28,6 +28,7 @@ from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
 from .library import (centred_terms, coupling_separation, extended_library, filter_row_mask, integrator_row_mask,
                       monomial_basis, physics_library, rebased, term_degrees)
+from .roles import SignalRoles
 from .trajfit import SHOOTING_PARTS_MAX, blas_threads
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
@@ -198,9 +199,9 @@ def _grid_inputs(template: ExplicitModel, grid) -> list:
     of lowest grid voltage (``metadata["reference_points"]``). Empty where the configuration names
     no grid magnitude among the inputs or the template has no rest points."""
     points = template.metadata.get("reference_points") or []
-    roles = (template.metadata.get("config") or {}).get("roles") or {}
+    roles = SignalRoles.from_mapping((template.metadata.get("config") or {}).get("roles") or {})
     names = list(template.input_names)
-    magnitude, phase = roles.get("grid_magnitude", "ug"), roles.get("grid_phase", "theta_g")
+    magnitude, phase = roles.grid_magnitude, roles.grid_phase
     if not grid or not points or magnitude not in names:
         return []
     k = names.index(magnitude)
