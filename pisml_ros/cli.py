@@ -98,7 +98,7 @@ def cmd_identify(args) -> int:
 
     from .analysis.operating_point import identified_input_range
     from .data import concat_datasets, read_dataset
-    from .ident import METHODS, ConfigError, IdentConfig, make_estimator
+    from .ident import METHODS, ConfigError, IdentConfig, make_estimator, selection_warnings
 
     if args.method not in METHODS:
         raise UserError(f"--method {args.method}: choose one of {', '.join(METHODS)}")
@@ -166,6 +166,8 @@ def cmd_identify(args) -> int:
         print(f"  training records starting at rest: {resting} of {records}" + (
             "" if resting else " (constant inputs and still states before the first input change): the "
             "selection's equilibrium check and the stability prior rest on the small-signal records alone"))
+    for warning in selection_warnings(model):
+        print(f"  caution: {warning}")
     if args.equations:
         for line in model.equations(digits=5):
             print("  " + line)

@@ -440,6 +440,35 @@ def test_trajectory_fit_of_noisy_records_stays_at_the_true_coefficients():
     np.testing.assert_allclose(result.coefficients[truth != 0], truth[truth != 0], rtol=0.03)
 
 
+def test_ridge_prior_collapses_a_cancelling_pair_of_nearly_collinear_terms():
+    # "xa" and "xa + 1e-6*xb" are indistinguishable on the records: a start with +-500 on the pair
+    # (the truth's xa coefficient plus 500 on one, -500 on the other) fits as well as the truth.
+    # Without the prior the fit leaves the pair where it starts; with it the pair shares the
+    # truth's coefficient and the field is unchanged
+    from pisml_ros.ident.trajfit import TrajectoryFitter
+    from pisml_ros.model.expressions import term_set
+
+    train, truth = _oscillator_data(6, lambda rng: [(int(rng.integers(50, 350)), rng.uniform(0.5, 1.5))], seed=1)
+    terms = ["xa", "xb", "v", "xa + 1e-6*xb"]
+    start = np.vstack([truth, np.zeros((1, 2))])
+    start[0] += 500.0
+    start[3] -= 500.0
+    spread = np.concatenate([tr.x for tr in train]).std(axis=0)
+
+    def fit(weight):
+        fitter = TrajectoryFitter(term_set(terms, ("xa", "xb", "v")), 2, train.dt, window=100,
+                                  weights=1.0 / (0.01 * spread))
+        return fitter.fit(start.copy(), start != 0, train, lambda_jac=0.0, max_nfev=10, fit_starts_first=True,
+                          lambda_ridge=weight).coefficients
+
+    plain, ridged = fit(0.0), fit(1e-3)
+    assert np.all(np.abs(plain[3]) > 400)
+    np.testing.assert_allclose(ridged[3], truth[0] / 2, rtol=0.05, atol=2.0)
+    for coef in (plain, ridged):  # the pair's sum, the field the records see, stays the truth's
+        np.testing.assert_allclose(coef[0] + coef[3], truth[0], rtol=0.03)
+        np.testing.assert_allclose(coef[1:3], truth[1:], rtol=0.03)
+
+
 def test_training_error_runs_records_from_their_rest_means():
     from pisml_ros.analysis.metrics import relative_error
     from pisml_ros.data.dataset import steady_start_length
@@ -716,6 +745,39 @@ def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
     selection = _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0,
                           equilibrium_grid=grid).metadata["selection"]
     assert selection["chosen"] == "pruned +0.1 % x3" and selection["inconsistent_rest_points"]["pruned +0.1 %"] == 2
+
+
+def test_selection_records_in_words_what_is_wrong_with_the_chosen_model():
+    from pisml_ros.ident import selection_warnings
+    from pisml_ros.ident.estimators import _selected
+
+    terms = ["1", "x", "ug", "y**2"]
+
+    def model(a, b=0.0):  # as above: y' = ug - a - y**2 folds at ug = a
+        return ExplicitModel(("x", "y"), ("ug", "theta_g"), terms,
+                             np.array([[1.0, b - a], [-1, -b], [0, 1], [0, -1]]), {})
+
+    points = [{"inputs": [0.8, 0.3], "state": [1.0, 0.3]}, {"inputs": [1.0, 0.1], "state": [1.0, 0.55]}]
+    template = ExplicitModel(("x", "y"), ("ug", "theta_g"), terms, np.zeros((4, 2)), {"reference_points": points})
+    grid = (0.2, 0.4, 0.6, 0.8, 1.0)
+    # a sound model: nothing to say
+    sound = _selected(template, {"refined": model(0.0)}, {"refined": 0.02}, unstable_rate=1.0, hold=0.4,
+                      equilibrium_grid=grid)
+    assert selection_warnings(sound) == []
+    # the only candidate folds at ug 0.7 (no verdict at 0.2-0.6) and scores worse than the hold
+    poor = _selected(template, {"refined": model(0.7)}, {"refined": 0.5}, unstable_rate=1.0, hold=0.4,
+                     equilibrium_grid=grid)
+    warnings = selection_warnings(poor)
+    assert len(warnings) == 2
+    assert "no better than holding" in warnings[0] and "0.5 % against 0.4 %" in warnings[0]
+    assert warnings[1].startswith("no equilibrium at grid voltage(s) 0.2, 0.4, 0.6:")
+    # unstable where the records sat at rest (y' = y**2 - ug: the rest states sit near the unstable branch)
+    unstable = ExplicitModel(("x", "y"), ("ug", "theta_g"), terms, np.array([[1.0, 0], [-1, 0], [0, -1], [0, 1]]), {})
+    warnings = selection_warnings(_selected(template, {"refined": unstable}, {"refined": 0.02}, unstable_rate=1.0,
+                                            hold=0.4))
+    assert warnings == [warnings[0]] and warnings[0].startswith("at 2 of the 2 operating points where the records sat")
+    # models without a selection (baselines, older files) have none
+    assert selection_warnings(model(0.0)) == [] and selection_warnings(None) == []
 
 
 def test_reference_points_add_one_point_per_operating_point_of_the_small_signal_records(train, small):

@@ -9,12 +9,12 @@ from .config import ConfigError, IdentConfig
 from .roles import RoleError, SignalRoles
 
 __all__ = ["ConfigError", "IdentConfig", "RoleError", "SignalRoles", "METHODS", "make_estimator",
-           "StageUpdate", "IdentificationCancelled"]
+           "StageUpdate", "IdentificationCancelled", "selection_warnings"]
 
 
 def __getattr__(name):
     # estimators import torch lazily: keep `import pisml_ros.ident` light
-    if name in ("METHODS", "make_estimator", "StageUpdate", "IdentificationCancelled"):
+    if name in ("METHODS", "make_estimator", "StageUpdate", "IdentificationCancelled", "selection_warnings"):
         from . import estimators
 
         return getattr(estimators, name)

@@ -219,10 +219,46 @@ def _grid_inputs(template: ExplicitModel, grid) -> list:
 def _missing_equilibria(name: str, candidates: dict, points: list, grid_inputs: list, cache: dict) -> int:
     """At how many of ``grid_inputs`` candidate ``name`` has no equilibrium, found as the analysis
     finds it (from the rest ``points``, then continuation in the inputs); cached by name."""
+    return sum(_without_equilibrium(name, candidates, points, grid_inputs, cache))
+
+
+def _without_equilibrium(name: str, candidates: dict, points: list, grid_inputs: list, cache: dict) -> list:
+    """For each of ``grid_inputs``, whether candidate ``name`` has no equilibrium there (as
+    :func:`_missing_equilibria` counts them); cached by name."""
     key = (name, "missing equilibria", tuple(map(tuple, grid_inputs)))
     if key not in cache:
-        cache[key] = sum(rate is None for rate in growth_rates_at_points(candidates[name], points, at=grid_inputs))
+        cache[key] = [rate is None for rate in growth_rates_at_points(candidates[name], points, at=grid_inputs)]
     return cache[key]
+
+
+def selection_warnings(model) -> list:
+    """The cautions the selection recorded in ``model``'s metadata (``selection["warnings"]``): what
+    a user should know before trusting its equations and eigenvalues. Empty for a model without
+    them (a baseline's, or one saved before they were recorded)."""
+    metadata = getattr(model, "metadata", None) or {}
+    return list((metadata.get("selection") or {}).get("warnings") or [])
+
+
+def _selection_warnings(chosen: str, scores: dict, hold: float, misfits: dict, points: list,
+                        unstable_rate: float, equilibrium_grid, missing_at: list) -> list:
+    """What a user of the chosen model should know before trusting it, in words: it reproduces the
+    records no better than holding their first states; it contradicts operating points where the
+    records sat at rest; it has no equilibrium (so no stability verdict) at some grid voltages.
+    Empty for a model with none of these."""
+    warnings = []
+    if not scores[chosen] < hold:
+        warnings.append(f"the model reproduces the records no better than holding their first states (free-run "
+                        f"error {scores[chosen]:.3g} % against {hold:.3g} %): the data are too noisy or too short "
+                        f"for the dynamics, and its equations and eigenvalues are not to be trusted")
+    if misfits.get(chosen):
+        warnings.append(f"at {misfits[chosen]} of the {len(points)} operating points where the records sat at rest "
+                        f"the model has no equilibrium or one with a mode growing faster than {unstable_rate:g} "
+                        f"1/s: its stability verdicts there contradict the data")
+    lacking = [float(value) for value, missing in zip(equilibrium_grid, missing_at) if missing]
+    if lacking:
+        warnings.append(f"no equilibrium at grid voltage(s) {', '.join(f'{v:g}' for v in lacking)}: no "
+                        f"stability verdict there")
+    return warnings
 
 
 def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0,
@@ -259,6 +295,10 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     among the eligible candidates with the fewest missing: a model that cannot be analysed at a grid
     voltage the plant runs at answers no question there, and on one 40 dB benchmark recording the
     candidate with a whole equilibrium branch was also the more accurate one (IdentConfig).
+
+    What remains wrong with the choice (no better than the hold, inconsistent rest points, grid
+    voltages without an equilibrium) is recorded in words in ``selection["warnings"]``
+    (:func:`selection_warnings`): `pisml identify` prints them and the identifier node logs them.
     """
     points = template.metadata.get("reference_points") or []
     verdicts = {} if verdicts is None else verdicts
@@ -286,11 +326,14 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                           candidates[chosen].coefficients, dict(template.metadata))
     if "centred_couplings" in candidates[chosen].metadata:  # what P0 in its terms' (Pf - P0) is
         model.metadata["centred_couplings"] = candidates[chosen].metadata["centred_couplings"]
+    missing_at = _without_equilibrium(chosen, candidates, points, grid_inputs, verdicts) if grid_inputs else []
     model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores),
                                    "nonzero": {name: int(c.n_parameters) for name, c in candidates.items()},
                                    "tolerance": tolerance, "inconsistent_rest_points": misfits,
                                    "unstable_rate": unstable_rate, "hold_error_pct": hold,
-                                   "equilibrium_grid": list(equilibrium_grid), "missing_equilibria": missing}
+                                   "equilibrium_grid": list(equilibrium_grid), "missing_equilibria": missing,
+                                   "warnings": _selection_warnings(chosen, scores, hold, misfits, points,
+                                                                   unstable_rate, equilibrium_grid, missing_at)}
     return model
 
 
@@ -993,7 +1036,7 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                             on_evaluation=on_evaluation, keep_going=improving, fit_starts_first=True,
                             lambda_stab=cfg.refine_stability_weight, stability_margin=cfg.refine_stability_margin,
                             stability_records=_stability_anchors(train, smallsignal, cfg),
-                            lambda_eq=cfg.refine_equilibrium_weight)
+                            lambda_eq=cfg.refine_equilibrium_weight, lambda_ridge=cfg.refine_ridge_weight)
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
         # a refinement that breaks down (a window blowing up) leaves the earlier candidates standing
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
@@ -1074,7 +1117,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                                     stability_records=_stability_anchors(train, smallsignal, cfg),
                                     lambda_eq=rest_weight or cfg.refine_equilibrium_weight,
                                     equilibrium_space="states" if rest_weight else "rates",
-                                    ftol=cfg.refine_stage_tolerance)
+                                    ftol=cfg.refine_stage_tolerance, lambda_ridge=cfg.refine_ridge_weight)
             except ValueError as err:  # no trajectory as long as the window: stop growing
                 model.metadata.setdefault("refinement_notes", []).append(f"window {window}: {err}")
                 break

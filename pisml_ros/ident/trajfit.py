@@ -163,7 +163,8 @@ class TrajectoryFitter:
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
             on_evaluation=None, keep_going=None, fit_starts_first: bool = False,
             lambda_stab: float = 0.0, stability_margin: float = 0.1, stability_records=None,
-            lambda_eq: float = 0.0, ftol: float = 1e-8, equilibrium_space: str = "rates") -> FitResult:
+            lambda_eq: float = 0.0, ftol: float = 1e-8, equilibrium_space: str = "rates",
+            lambda_ridge: float = 0.0) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -194,6 +195,13 @@ class TrajectoryFitter:
             fits every window's start state, so a slow state's equilibrium can sit far from where
             the records rested at no trajectory cost; in rates, a small slow-row rate is a large
             state offset (J⁻¹ is large along the slow modes), which this unit sees.
+        lambda_ridge : float
+            Weight of the ridge prior (0 switches it off): each coefficient's share of its equation,
+            ``sqrt(lambda_ridge) * c_ij * rms(θ_i) / rms(f_j)`` (the term's and the start model's
+            equation's root mean square over the windows' samples). It pins the directions the data
+            hardly see — pairs of nearly collinear terms that cancel with large coefficients (at
+            40 dB, ``delta`` and ``sin(delta)`` at ∓1.6e4 in a power-filter row) — and hardly moves
+            the coefficients the data determine.
         max_nfev : int
             Cost evaluations (the start and every trial step).
         ftol : float
@@ -222,7 +230,7 @@ class TrajectoryFitter:
             with blas_threads(1 if self.threads > 1 else None):
                 problem = _ShootingProblem(self, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
                                            lambda_stab, stability_margin, stability_records, lambda_eq,
-                                           equilibrium_space)
+                                           equilibrium_space, lambda_ridge)
                 return self._solve(torch, problem, coef0, max_nfev, on_evaluation, keep_going, fit_starts_first,
                                    ftol)
         finally:
@@ -387,7 +395,7 @@ class _ShootingProblem:
 
     def __init__(self, fitter: TrajectoryFitter, coef0, mask, train, smallsignal, lambda_jac, ss_stride,
                  lambda_stab=0.0, stability_margin=0.1, stability_records=None, lambda_eq=0.0,
-                 equilibrium_space="rates"):
+                 equilibrium_space="rates", lambda_ridge=0.0):
         import torch
 
         torch.set_default_dtype(torch.float64)
@@ -468,6 +476,15 @@ class _ShootingProblem:
                     slopes[self.idx % self.shape[1], np.arange(self.idx.size)] = (
                         self.scale * values[self.idx // self.shape[1]] / sigma[self.idx % self.shape[1]])
                     self.rest_values.append((values, 1.0 / sigma, slopes))
+        self.ridge_unit = np.zeros(self.idx.size)  # ridge prior: ∂residual/∂θ per support coefficient
+        if lambda_ridge > 0 and self.idx.size:
+            points = np.concatenate([xw, uw], axis=-1).reshape(-1, xw.shape[-1] + uw.shape[-1])
+            values = self.terms.evaluate(points)
+            term_rms = np.sqrt(np.mean(values ** 2, axis=0))
+            rate_rms = np.sqrt(np.mean((values @ coef0) ** 2, axis=0))
+            rate_rms = np.maximum(rate_rms, 1e-9 * (1.0 + rate_rms.max()))
+            self.ridge_unit = np.sqrt(lambda_ridge) * self.scale * (
+                term_rms[self.idx // self.shape[1]] / rate_rms[self.idx % self.shape[1]])
         self.sqrt_ls = float(np.sqrt(lambda_stab))
         self.sqrt_le = float(np.sqrt(lambda_eq))
         self.stability_margin = float(stability_margin)
@@ -807,7 +824,9 @@ class _ShootingProblem:
             ss = self._smallsignal_residuals(theta)
         stab, _ = self._stability_residuals(theta)
         eq, _ = self._equilibrium_residuals(theta)
-        value = traj + 0.5 * float((ss * ss).sum()) + 0.5 * float(stab @ stab) + 0.5 * float(eq @ eq)
+        ridge = self.ridge_unit * np.asarray(theta)
+        value = (traj + 0.5 * float((ss * ss).sum()) + 0.5 * float(stab @ stab) + 0.5 * float(eq @ eq)
+                 + 0.5 * float(ridge @ ridge))
         return value if np.isfinite(value) else np.inf
 
     def normal_equations(self, theta, z) -> dict:
@@ -827,6 +846,10 @@ class _ShootingProblem:
             if res.size:
                 blocks["H"] += torch.tensor(jac.T @ jac)
                 blocks["g"] += torch.tensor(jac.T @ res)
+        if self.ridge_unit.any():  # residuals unit·θ: a diagonal JᵀJ
+            unit2 = torch.tensor(self.ridge_unit ** 2)
+            blocks["H"] += torch.diag(unit2)
+            blocks["g"] += unit2 * torch.as_tensor(theta, dtype=unit2.dtype)
         return blocks
 
     def damped_step(self, blocks, mu):

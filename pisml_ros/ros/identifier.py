@@ -45,7 +45,7 @@ from ..data import DataError, read_dataset, validate_batch  # noqa: E402
 from ..data.dataset import records_at_rest  # noqa: E402
 from ..data.stream import TrajectoryBuffer  # noqa: E402
 from ..fileio import atomic_write_text, json_default  # noqa: E402
-from ..ident import IdentConfig  # noqa: E402
+from ..ident import IdentConfig, selection_warnings  # noqa: E402
 from ..ident.worker import IdentificationWorker, RunResult  # noqa: E402
 from ..model import ExplicitModel  # noqa: E402
 from .conversions import model_message, overrides_from_assignments, overrides_from_fields  # noqa: E402
@@ -250,6 +250,8 @@ class IdentifierNode(Node):
             self._save_history(result)
             self.get_logger().info(f"run {job.model_id} done in {time.monotonic() - started:.1f} s: {stage} model, "
                                    f"{job.result.n_parameters} parameters")
+            for warning in selection_warnings(result.model):
+                self.get_logger().warning(f"run {job.model_id}: caution: {warning}")
         elif result.status == "cancelled" or (job.should_stop() and result.status == "failed"):
             job.cancelled, job.stage = True, "cancelled"
             self.get_logger().info(f"run {job.model_id}: {result.error or 'cancelled'}")
