@@ -243,6 +243,11 @@ def cmd_analyse(args) -> int:
     note = coverage_note(report.get("data_coverage"))
     if note:
         print(f"  note: {note}")
+    if args.model != "plant":
+        from .ident import selection_warnings
+
+        for warning in selection_warnings(system):  # what the identification found wrong with the model
+            print(f"  caution: {warning}")
     return 0
 
 

@@ -384,7 +384,13 @@ def test_identify_simulate_analyse_cli(tmp_path, train, capsys):
     assert main(["analyse", "--model", str(out), "--ug", "0.9"]) == 0
     assert "note: extrapolated: outside the identification data's ug 0.95-1.2" in capsys.readouterr().out
     assert main(["analyse", "--model", str(out), "--ug", "1.0", "--margin"]) == 0
-    assert "stability boundaries in ug: [" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "stability boundaries in ug: [" in printed and "caution" not in printed
+    # a model whose identification recorded cautions (selection.warnings) shows them with its analysis
+    narrowed["metadata"]["selection"] = {"warnings": ["no equilibrium at grid voltage(s) 0.2: no stability verdict there"]}
+    out.write_text(json.dumps(narrowed))
+    assert main(["analyse", "--model", str(out), "--ug", "1.0"]) == 0
+    assert "  caution: no equilibrium at grid voltage(s) 0.2: no stability verdict there\n" in capsys.readouterr().out
     # user errors: one line, status 2
     assert main(["identify", "--data", str(data), "--method", "nope", "--out", str(out)]) == 2
     assert main(["identify", "--data", str(data), "--set", "epochs=-1", "--out", str(out)]) == 2
