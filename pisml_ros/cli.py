@@ -230,6 +230,12 @@ def cmd_analyse(args) -> int:
     print(f"operating point ug = {op['ug']:g} p.u., theta_g = {op['theta_g']:g} rad: "
           f"{'STABLE' if report['stable'] else 'UNSTABLE'} (max real part {report['max_real']:.4g} 1/s, "
           f"min damping {report['min_damping']:.3f})")
+    uncertainty = report.get("uncertainty")
+    if uncertainty:
+        low, high = uncertainty["max_real_interval"]
+        print(f"  the data pin the largest real part to {low:.4g} .. {high:.4g} 1/s (2 std, noise alone): "
+              + ("stability undetermined by the data" if uncertainty["verdict"] == "undetermined"
+                 else f"{uncertainty['verdict']} either way"))
     print(f"  {'eigenvalue (1/s)':>28}  {'damping':>8}  {'freq (Hz)':>10}  dominant states")
     for (re, im), zeta, freq, dom in zip(report["eigenvalues"], report["damping"], report["frequencies_hz"],
                                           report["dominant_states"]):
@@ -240,6 +246,10 @@ def cmd_analyse(args) -> int:
             -math.inf, math.inf)
         bounds = [f"{b:.4g}" + ("" if low <= b <= high else " (extrapolated)") for b in report["boundaries"]]
         print(f"  stability boundaries in ug: [{', '.join(bounds)}]; margin {report['ug_margin']:.4f} p.u.")
+        if report.get("undetermined_ug"):
+            stretches = ", ".join(f"{low:.3g}-{high:.3g}" if high > low else f"{low:.3g}"
+                                  for low, high in report["undetermined_ug"])
+            print(f"  stability not decided by the data (largest real part within 2 std of 0) at ug {stretches}")
     note = coverage_note(report.get("data_coverage"))
     if note:
         print(f"  note: {note}")

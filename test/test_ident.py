@@ -475,6 +475,56 @@ def test_ridge_prior_collapses_a_cancelling_pair_of_nearly_collinear_terms():
         np.testing.assert_allclose(coef[1:3], truth[1:], rtol=0.03)
 
 
+def test_verdict_uncertainty_carries_the_coefficient_covariance_to_the_largest_real_part(tmp_path, capsys):
+    from pisml_ros.analysis.operating_point import operating_point_report, ug_stability_margin
+    from pisml_ros.analysis.uncertainty import coefficient_covariance, covariance_metadata, max_real_std, \
+        stability_verdict
+    from pisml_ros.cli import main
+    from pisml_ros.model import ExplicitModel
+
+    # x' = (ug - 1)·x + y, y' = -2·y: the largest real part is ug - 1 (the x mode), 0 at ug = 1
+    terms = ["x", "ug*x", "y"]
+    coefficients = np.array([[-1.0, 0.0], [1.0, 0.0], [1.0, -2.0]])
+    cov = np.array([[0.01, 0.002, 0.0], [0.002, 0.0004, 0.0], [0.0, 0.0, 0.09]])  # x, ug*x in x'; y in y'
+    support = np.array([0, 2, 5])  # flat indices: (x, x'), (ug*x, x'), (y, y')
+    meta = covariance_metadata(coefficients.shape, support, cov)
+    assert meta["entries"] == [[0, 0], [1, 0], [2, 1]]
+    model = ExplicitModel(("x", "y"), ("ug", "theta_g"), terms, coefficients,
+                          {"coefficient_covariance": meta})
+    entries, unpacked = coefficient_covariance(model)
+    np.testing.assert_allclose(unpacked, cov)
+    # d(ug - 1) = dc_x + ug·dc_ugx (the y' coefficient does not move the x mode)
+    for ug in (0.5, 0.9, 1.3):
+        expected = np.sqrt(np.array([1.0, ug]) @ cov[:2, :2] @ np.array([1.0, ug]))
+        assert max_real_std(model, [0.0, 0.0], [ug, 0.0]) == pytest.approx(expected, rel=1e-9)
+    assert stability_verdict(-0.5, 0.1) == "stable" and stability_verdict(0.5, 0.1) == "unstable"
+    assert stability_verdict(-0.1, 0.1) == "undetermined" and stability_verdict(-0.1, None) == "stable"
+    report = operating_point_report(model, 0.9)
+    uncertainty = report["uncertainty"]
+    std = np.sqrt(np.array([1.0, 0.9]) @ cov[:2, :2] @ np.array([1.0, 0.9]))  # 0.118: -0.1 is within 2 std
+    assert uncertainty["max_real_std"] == pytest.approx(std) and uncertainty["verdict"] == "undetermined"
+    np.testing.assert_allclose(uncertainty["max_real_interval"], [-0.1 - 2 * std, -0.1 + 2 * std])
+    assert operating_point_report(model, 0.5)["uncertainty"]["verdict"] == "stable"
+    # the ug scan names where the data leave the verdict open: |ug - 1| < 2 std (0.23 at ug 0.8,
+    # 0.25 at 1.2, 0.23 at 0.7 and 0.25 at 1.3), and the boundary on a grid value counts once
+    margin = ug_stability_margin(model, 0.5, ug_range=(0.5, 1.5), points=11)
+    assert margin["boundaries"] == [pytest.approx(1.0, abs=1e-6)]
+    assert margin["undetermined_ug"] == [[pytest.approx(0.8), pytest.approx(1.2)]]
+    # without a covariance (the plant, the baselines, edited models) there is nothing to say
+    bare = ExplicitModel(("x", "y"), ("ug", "theta_g"), terms, coefficients, {})
+    assert "uncertainty" not in operating_point_report(bare, 0.9)
+    assert "undetermined_ug" not in ug_stability_margin(bare, 0.5, ug_range=(0.5, 1.5), points=11)
+    edited = ExplicitModel(("x", "y"), ("ug", "theta_g"), terms[:2], coefficients[:2],
+                           {"coefficient_covariance": meta})  # entry (2, 1) no longer exists
+    assert coefficient_covariance(edited) is None
+    path = tmp_path / "model.json"
+    model.save(path)
+    assert main(["analyse", "--model", str(path), "--ug", "0.9", "--margin"]) == 0
+    printed = capsys.readouterr().out
+    assert "stability undetermined by the data" in printed
+    assert "stability not decided by the data (largest real part within 2 std of 0) at ug 0.8-1.2" in printed
+
+
 def test_training_error_runs_records_from_their_rest_means():
     from pisml_ros.analysis.metrics import relative_error
     from pisml_ros.data.dataset import steady_start_length
@@ -538,6 +588,16 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     assert np.all(pruned.coefficients[3] == 0) and np.all(pruned.coefficients[:3][truth != 0] != 0)
     np.testing.assert_allclose(pruned.coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
     assert progress and progress[-1] == pytest.approx(1.0) and all(np.diff(progress) >= 0)
+    # each candidate carries its coefficients' covariance for the noise (the analysis' verdict
+    # uncertainty): over its own support, and the truth within a few of its standard deviations
+    from pisml_ros.analysis.uncertainty import coefficient_covariance
+
+    for candidate in out.values():
+        entries, cov = coefficient_covariance(candidate)
+        assert sorted(map(tuple, entries.tolist())) == sorted(zip(*np.nonzero(candidate.coefficients)))
+        true = np.vstack([truth, [[0.0, 0.0]]])[entries[:, 0], entries[:, 1]]
+        z = (candidate.coefficients[entries[:, 0], entries[:, 1]] - true) / np.sqrt(np.diag(cov))
+        assert np.all(np.abs(z) < 4), z
     # prune-and-polish rounds: the first drops both spurious terms; a second would drop nothing more,
     # so it adds no candidate (another polish of the same support)
     spurious = ExplicitModel(("xa", "xb"), ("v",), ["xa", "xb", "v", "xa*xb", "xb*v"],

@@ -31,9 +31,16 @@ def stability_boundaries(max_real: Callable[[float], float], grid: Sequence[floa
         except Exception:  # no equilibrium there: the scan just skips it
             continue
     crossings = []
-    for (g0, m0), (g1, m1) in zip(values[:-1], values[1:]):
-        if np.sign(m0) != np.sign(m1):
-            crossings.append(float(scipy.optimize.brentq(max_real, g0, g1, xtol=xtol)))
+    last = None  # the last grid value with a nonzero real part, and that part
+    zeros = []  # grid values since then where the real part is exactly 0
+    for g, m in values:
+        if m == 0:
+            zeros.append(g)
+            continue
+        if last is not None and np.sign(last[1]) != np.sign(m):
+            # a crossing on a grid value counts once (not for the interval on each side of it)
+            crossings.append(zeros[0] if zeros else float(scipy.optimize.brentq(max_real, last[0], g, xtol=xtol)))
+        last, zeros = (g, m), []
     return crossings
 
 

@@ -20,7 +20,9 @@ def operating_point_report(system, ug: float, theta_g: float = 0.0) -> dict:
     dict
         ``{"operating_point": {"ug", "theta_g", "state": {name: value}},
         "eigenvalues": [[re, im], ...], "damping": [...], "frequencies_hz": [...],
-        "dominant_states": [...], "max_real": float, "min_damping": float, "stable": bool}``
+        "dominant_states": [...], "max_real": float, "min_damping": float, "stable": bool}``, plus
+        ``"data_coverage"`` (:func:`data_coverage`) and ``"uncertainty"`` (:func:`verdict_uncertainty`)
+        where the system carries them (identified models).
     """
     x = system.equilibrium(ug, theta_g)
     a = system.jacobian(x, np.array([ug, theta_g]))
@@ -32,7 +34,29 @@ def operating_point_report(system, ug: float, theta_g: float = 0.0) -> dict:
     coverage = data_coverage(system, (ug, theta_g))
     if coverage is not None:
         report["data_coverage"] = coverage
+    uncertainty = verdict_uncertainty(system, x, (ug, theta_g), report["max_real"])
+    if uncertainty is not None:
+        report["uncertainty"] = uncertainty
     return report
+
+
+def verdict_uncertainty(system, x, inputs, max_real: float) -> dict | None:
+    """How far the identification data pin the stability verdict at an equilibrium ``x``:
+    ``{"max_real_std", "max_real_interval" (± VERDICT_SIGMAS std), "verdict" (stable, unstable or
+    undetermined), "basis"}`` from the model's coefficient covariance
+    (:mod:`~pisml_ros.analysis.uncertainty`); None where the system carries none (the plant, the
+    baselines, models saved before it was recorded)."""
+    from .uncertainty import VERDICT_SIGMAS, coefficient_covariance, max_real_std, stability_verdict
+
+    if coefficient_covariance(system) is None:
+        return None
+    std = max_real_std(system, x, np.asarray(inputs, dtype=float))
+    if std is None:
+        return None
+    return {"max_real_std": std,
+            "max_real_interval": [max_real - VERDICT_SIGMAS * std, max_real + VERDICT_SIGMAS * std],
+            "verdict": stability_verdict(max_real, std),
+            "basis": system.metadata["coefficient_covariance"].get("basis", "")}
 
 
 def identified_input_range(system) -> dict | None:
@@ -99,7 +123,38 @@ def ug_stability_margin(system, ug: float, theta_g: float = 0.0, ug_range=(0.2, 
     """Stability boundaries in grid voltage and the distance of ``ug`` to the nearest one."""
     grid = np.linspace(ug_range[0], ug_range[1], points)
     bounds = stability_boundaries(lambda g: max_real_part(system, g, theta_g), grid)
-    return {"boundaries": bounds, "ug_margin": distance_to_boundary(ug, bounds)}
+    out = {"boundaries": bounds, "ug_margin": distance_to_boundary(ug, bounds)}
+    undetermined = undetermined_ug_ranges(system, grid, theta_g)
+    if undetermined is not None:
+        out["undetermined_ug"] = undetermined
+    return out
+
+
+def undetermined_ug_ranges(system, grid, theta_g: float = 0.0) -> list | None:
+    """The stretches ``[first, last]`` of the grid voltages ``grid`` where the identification data do
+    not decide the stability verdict (:func:`verdict_uncertainty`: "undetermined"); None where the
+    system carries no coefficient covariance. A boundary found inside such a stretch is where the
+    model puts it, not where the data pin it."""
+    from .uncertainty import coefficient_covariance
+
+    if coefficient_covariance(system) is None:
+        return None
+    ranges: list = []
+    previous = False
+    for g in grid:
+        try:
+            x = system.equilibrium(float(g), theta_g)
+            max_real = float(np.max(np.linalg.eigvals(system.jacobian(x, np.array([g, theta_g]))).real))
+            verdict = (verdict_uncertainty(system, x, (g, theta_g), max_real) or {}).get("verdict")
+        except (RuntimeError, ValueError, np.linalg.LinAlgError, FloatingPointError):  # no equilibrium
+            verdict = None
+        if verdict == "undetermined":
+            if previous:
+                ranges[-1][1] = float(g)
+            else:
+                ranges.append([float(g), float(g)])
+        previous = verdict == "undetermined"
+    return ranges
 
 
 def stability_at_points(model, points) -> list:

@@ -324,8 +324,10 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                    tolerance, points, verdicts)
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
-    if "centred_couplings" in candidates[chosen].metadata:  # what P0 in its terms' (Pf - P0) is
-        model.metadata["centred_couplings"] = candidates[chosen].metadata["centred_couplings"]
+    # what P0 in its terms' (Pf - P0) is; how far the data pin its coefficients
+    for key in ("centred_couplings", "coefficient_covariance"):
+        if key in candidates[chosen].metadata:
+            model.metadata[key] = candidates[chosen].metadata[key]
     missing_at = _without_equilibrium(chosen, candidates, points, grid_inputs, verdicts) if grid_inputs else []
     model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores),
                                    "nonzero": {name: int(c.n_parameters) for name, c in candidates.items()},
@@ -1044,7 +1046,8 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     meta = dict(model.metadata)
     meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds,
                           "abandoned": result.abandoned}
-    out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients, meta)}
+    out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients,
+                                    {**meta, **_with_covariance(result)})}
     if result.abandoned:
         errors["refined"] = checked[-1]  # the abandoned point is the one just checked
         model.metadata.setdefault("refinement_notes", []).append(
@@ -1141,7 +1144,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                 "pruned_between": pruned_between}
     meta["refinement"] = {"cost": result.cost, "nfev": used[0], "seconds": time.monotonic() - started,
                           "abandoned": False, "growing_windows": schedule}
-    out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients, meta)}
+    out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients,
+                                    {**meta, **_with_covariance(result)})}
     if not cfg.refine_prune_budgets or result.hessian is None:
         return out
     samples = train.n_samples
@@ -1178,10 +1182,23 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         # named by the nominal budget: the same names whatever the records' length
         name = f"pruned +{100 * cfg.refine_prune_budgets[0]:g} %" + ("" if round_ == 1 else f" x{round_}")
         out[name] = ExplicitModel(model.state_names, model.input_names, model.terms,
-                                  coef if polished is None else polished.coefficients, {**meta, "pruning": pruning})
+                                  coef if polished is None else polished.coefficients,
+                                  {**meta, "pruning": pruning, **_with_covariance(polished)})
     if progress:  # stages that converged early leave evaluations of their budget unused
         progress(1.0, {"refine_cost": result.cost if polished is None else polished.cost})
     return out
+
+
+def _with_covariance(result) -> dict:
+    """``{"coefficient_covariance": ...}`` (:func:`~pisml_ros.analysis.uncertainty.covariance_metadata`)
+    of a trajectory fit's coefficients where it has a Hessian, else empty: the metadata that lets the
+    analysis say how far the data pin a stability verdict."""
+    from ..analysis.uncertainty import covariance_metadata
+
+    covariance = None if result is None else result.covariance()
+    if covariance is None or not np.all(np.isfinite(covariance)):
+        return {}
+    return {"coefficient_covariance": covariance_metadata(result.coefficients.shape, result.support, covariance)}
 
 
 def _worth_continuing(errors: list, start_error: float, min_fall: float = 0.02) -> bool:

@@ -125,6 +125,15 @@ class FitResult:
     # coefficient matrix), the window start states profiled out; for pruning (:func:`backward_elimination`)
     hessian: np.ndarray | None = None
     support: np.ndarray | None = None
+    window: int | None = None  # samples per shooting window of the fit
+
+    def covariance(self) -> np.ndarray | None:
+        """Covariance of the support coefficients for the measurement noise alone (not the model's
+        own error): each residual is a sample's misfit in noise units over sqrt(window + 1), so the
+        information is (window + 1) times :attr:`hessian`. None without a Hessian."""
+        if self.hessian is None or self.window is None:
+            return None
+        return np.linalg.pinv(self.hessian, rcond=1e-12, hermitian=True) / (self.window + 1)
 
 
 class TrajectoryFitter:
@@ -286,7 +295,7 @@ class TrajectoryFitter:
         hessian = problem.profiled_hessian(normal) if _finite(normal) else None
         return FitResult(problem.coefficients(theta), cost, nfev, time.monotonic() - started,
                          hessian=hessian if hessian is not None and np.all(np.isfinite(hessian)) else None,
-                         support=problem.idx)
+                         support=problem.idx, window=problem.window)
 
 
 def _expm_row_derivatives(m, rows, vectors, tau: float):

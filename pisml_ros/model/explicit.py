@@ -77,9 +77,15 @@ class ExplicitModel:
         """dx/dt, shape (..., n_states)."""
         return self.features(x, u) @ self.coefficients
 
+    def term_gradients(self, x, u) -> np.ndarray:
+        """Derivatives of every term in every signal (states, then inputs) at one point, shape
+        (n_terms, n_states + n_inputs): the Jacobian's building blocks, for sensitivities in the
+        coefficients."""
+        return self._terms.gradient(self._stack(x, u))
+
     def jacobian(self, x, u, wrt: str = "x") -> np.ndarray:
         """Analytic Jacobian (sympy derivatives of the terms) at one point."""
-        grad = self._terms.gradient(self._stack(x, u))  # (n_terms, n_signals)
+        grad = self.term_gradients(x, u)  # (n_terms, n_signals)
         block = grad[:, :self.n_states] if wrt == "x" else grad[:, self.n_states:]
         return self.coefficients.T @ block
 
