@@ -101,6 +101,37 @@ def spectra(model, grid):
     return out
 
 
+def verdict_calibration(model, truth_spectra) -> dict:
+    """Where the data leave the model's stability verdict open, and whether the plant's largest real
+    part lies within two of the model's standard deviations of it (analysis.uncertainty), over the
+    grid voltages of ``truth_spectra`` where the model has an equilibrium. Empty for a model without
+    a coefficient covariance."""
+    from pisml_ros.analysis.operating_point import operating_point_report
+
+    undetermined, covered, points = [], 0, 0
+    for g, truth in truth_spectra.items():
+        try:
+            report = operating_point_report(model, g, 0.0)
+        except Exception:  # no equilibrium: no verdict to weigh
+            continue
+        if "uncertainty" not in report:
+            return {}
+        points += 1
+        low, high = report["uncertainty"]["max_real_interval"]
+        covered += bool(low <= float(np.max(np.real(truth))) <= high)
+        if report["uncertainty"]["verdict"] == "undetermined":
+            undetermined.append(g)
+    return {"verdict_undetermined": undetermined, "verdict_points": points, "plant_within_2std": covered}
+
+
+def verdict_text(row: dict) -> str:
+    """'undetermined at …; plant within 2 std at k of n' for a table cell ('—' without a covariance)."""
+    if "verdict_points" not in row:
+        return "—"
+    open_at = ", ".join(f"{g:g}" for g in row["verdict_undetermined"]) or "none"
+    return f"{open_at}; {row['plant_within_2std']}/{row['verdict_points']}"
+
+
 # the current x current monomials that vo = vc + Rd·(il − ig) brings into p and q (d(Pf)/dt and
 # d(Qf)/dt of the default plant); p and q computed from vc miss them
 RD_TERMS = {"Pf": ("ig_d**2", "ig_q**2", "ig_d*il_d", "ig_q*il_q"), "Qf": ("ig_d*il_q", "ig_q*il_d")}
@@ -204,6 +235,8 @@ def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, lab
                                 and model_spectra[g].real.max() > 0 > truth_spectra[g].real.max()]
     row["missed_unstable"] = [g for g in grid if truth_spectra[g].real.max() > 0
                               and (model_spectra[g] is None or model_spectra[g].real.max() <= 0)]
+    if est.explicit_model_ is not None:
+        row.update(verdict_calibration(est.explicit_model_, truth_spectra))
     operating = operating_point_errors(est.model_, plant)
     row.update(op_dp=operating["dp"], op_dq=operating["dq"], op_dv=operating["dv"])
     if est.explicit_model_ is not None:
@@ -242,16 +275,21 @@ def write_markdown(results, path):
              "ΔQ / ΔP op.: the largest error of the model's operating point (its equilibrium, as the analysis "
              f"finds it) in reactive / active power over ug {', '.join(map(str, OPERATING_POINT_GRID))} against "
              "the plant's, p.u. ('—': no equilibrium at one of them).", "",
+             "Verdict open: grid ug where the model's largest real part is within two of its standard deviations "
+             "(the coefficients' covariance for the noise, analysis.uncertainty) of 0, so that the data do not "
+             "decide stability there; then at how many grid ug the plant's largest real part lies within those "
+             "two standard deviations of the model's ('—': no covariance: baselines, unrefined models).", "",
              "| plant | noise | method | IOD % | OOD % | W(ug 0.8) | W mean 0.2–1.2 | spurious unstable | "
-             "no equilibrium | ΔQ / ΔP op. | nonzero params | Rd terms | time s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "no equilibrium | ΔQ / ΔP op. | nonzero params | Rd terms | verdict open; plant within 2 std | time s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results["runs"]:
         if r.get("sweep") != "main":
             continue
         lines.append(f"| {r['plant']} | {r['noise']} | {r['method']} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
                      f"{fmt(r.get('wasserstein_ug08'))} | {fmt(r.get('wasserstein_mean'))} | "
                      f"{spurious_text(r)} | {missing_text(r)} | {fmt(r.get('op_dq'), 2)} / {fmt(r.get('op_dp'), 2)} | "
-                     f"{r.get('n_parameters', '—')} | {fmt(r.get('rd_terms_found')) + ('/6' if 'rd_terms_found' in r else '')} | {fmt(r.get('seconds'))} |")
+                     f"{r.get('n_parameters', '—')} | {fmt(r.get('rd_terms_found')) + ('/6' if 'rd_terms_found' in r else '')} | "
+                     f"{verdict_text(r)} | {fmt(r.get('seconds'))} |")
     hyb = [r for r in results["runs"] if r.get("sweep_hybrid") and r.get("sweep") == "main"]
     if hyb:
         lines += ["", "## Hybrid vs distilled (PISML), error % over ug (phase jump + 10 % sag from each ug)", "",
@@ -271,14 +309,14 @@ def write_markdown(results, path):
         if rows:
             lines += ["", f"## {title} (standard plant, pisml)", "",
                       f"| {key} | IOD % | OOD % | W(ug 0.8) | spurious unstable | no equilibrium | ΔQ / ΔP op. | "
-                      "parameters | compression | time s |",
-                      "|---|---|---|---|---|---|---|---|---|---|"]
+                      "parameters | compression | verdict open; plant within 2 std | time s |",
+                      "|---|---|---|---|---|---|---|---|---|---|---|"]
             for r in rows:
                 spurious = spurious_text(r)
                 lines.append(f"| {r[key]} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
                              f"{fmt(r.get('wasserstein_ug08'))} | {spurious} | {missing_text(r)} | "
                              f"{fmt(r.get('op_dq'), 2)} / {fmt(r.get('op_dp'), 2)} | {r.get('n_parameters', '—')} | "
-                             f"{compression_text(r)} | {fmt(r.get('seconds'))} |")
+                             f"{compression_text(r)} | {verdict_text(r)} | {fmt(r.get('seconds'))} |")
     spread = recording_spread(results["runs"])
     if spread:
         lines += ["", f"Over the {spread['recordings']} recordings at 40 dB (recording 0 and the table above), median / worst: "
@@ -289,7 +327,10 @@ def write_markdown(results, path):
                   f"spurious unstable mode or failed: {spread['spurious']} (a spurious mode inside the data's ug "
                   f"range: {spread.get('spurious_in_data', '—')}); without an equilibrium at some ug of the grid: "
                   f"{spread.get('missing_equilibrium', '—')}; compression hybrid → explicit ≥ 250×: "
-                  f"{spread.get('compressed', '—')} of {spread['recordings']} (median {fmt(spread.get('compression_median'))}×)."]
+                  f"{spread.get('compressed', '—')} of {spread['recordings']} (median {fmt(spread.get('compression_median'))}×); "
+                  f"the plant's largest real part within two of the model's standard deviations at "
+                  f"{spread.get('plant_within_2std', '—')} of {spread.get('verdict_points', '—')} grid points, the "
+                  f"verdict left open by the data at {spread.get('verdict_undetermined', '—')} of them."]
     lines += ["", "Figures: bench/figures/spectra_*.png (eigenvalues at ug 0.8, model vs truth).", ""]
     path.write_text("\n".join(lines))
 
@@ -316,6 +357,9 @@ def recording_spread(runs: list) -> dict | None:
     out["spurious"] = sum(bool(r.get("spurious_unstable")) or "error" in r for r in rows)
     out["spurious_in_data"] = sum(" (in data)" in spurious_text(r) for r in rows)
     out["missing_equilibrium"] = sum(bool(r.get("no_equilibrium")) for r in rows)
+    for key in ("plant_within_2std", "verdict_points"):
+        out[key] = sum(r.get(key, 0) for r in rows)
+    out["verdict_undetermined"] = sum(len(r.get("verdict_undetermined", [])) for r in rows)
     ratios = [compression(r) for r in rows]
     out["compressed"] = sum(c is not None and c >= 250 for c in ratios)
     out["compression_median"] = float(np.median([c if c is not None else 0.0 for c in ratios]))
