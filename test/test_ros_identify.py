@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from pisml_ros.data import read_csv, read_dataset, write_csv
+from pisml_ros.model import ExplicitModel
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
 
@@ -135,6 +136,13 @@ def test_initial_model_is_latched_and_bad_models_do_not_stop_the_analyser(probe,
     # recorded as identified on ug 0.9-1.2 only: its report at 0.8 must say it extrapolates
     narrowed = json.loads(saved.read_text())
     narrowed["metadata"]["training"]["input_range"]["ug"] = [0.9, 1.2]
+    # and with coefficients the data pin only to +-30 %: its verdict there is not the data's
+    from pisml_ros.analysis.uncertainty import covariance_metadata
+
+    coefficients = ExplicitModel.load(saved).coefficients
+    support = np.flatnonzero(coefficients)
+    narrowed["metadata"]["coefficient_covariance"] = covariance_metadata(
+        coefficients.shape, support, np.diag((0.3 * coefficients.ravel()[support]) ** 2))
     saved.write_text(json.dumps(narrowed))
     diags, reports, models = [], [], []
     subs = [probe.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 100),
@@ -170,8 +178,10 @@ def test_initial_model_is_latched_and_bad_models_do_not_stop_the_analyser(probe,
         assert spin_until(probe, lambda: analyser_status().level == DiagnosticStatus.OK, 10.0)  # recovered
         report = [r for r in reports if r.model_id == "initial:saved"][-1]
         assert report.message.endswith(" (extrapolated: outside the identification data's ug 0.9-1.2)"), report.message
+        assert " (not decided by the data: max real part " in report.message, report.message
         assert spin_until(probe, lambda: diagnostic_values(
             diags, "pisml: stability ug=0.8")[1].get("extrapolated") == "true", 10.0)
+        assert diagnostic_values(diags, "pisml: stability ug=0.8")[1].get("verdict") == "undetermined"
         late = rclpy.create_node("pisml_late_model_subscriber")
         late.create_subscription(IdentifiedModel, "/pisml/model", models.append, latched_qos())
         assert spin_until(late, lambda: models, 20.0)

@@ -228,6 +228,11 @@ class AnalyserNode(Node):
                 level, message = DiagnosticStatus.ERROR, "unstable"
             elif report["min_damping"] < self.min_damping or report["ug_margin"] < self.min_ug_margin:
                 level, message = DiagnosticStatus.WARN, "margin below threshold"
+            # a verdict within two standard deviations of the boundary is the model's, not the data's
+            uncertainty = report.get("uncertainty")
+            if uncertainty and uncertainty["verdict"] == "undetermined":
+                low_re, high_re = uncertainty["max_real_interval"]
+                message += f" (not decided by the data: max real part {low_re:.3g} .. {high_re:.3g} 1/s, 2 std)"
             # a verdict outside the identification data rests on the model's extrapolation: say so
             note = coverage_note(report.get("data_coverage"))
             message += f" ({note})" if note else ""
@@ -236,7 +241,8 @@ class AnalyserNode(Node):
             statuses.append(status(name, level, f"{model_id}: {message}", {
                 "max_real_part": f"{report['max_real']:.6g}", "min_damping_ratio": f"{report['min_damping']:.6g}",
                 "ug_margin": f"{report['ug_margin']:.6g}", "model_id": model_id,
-                "extrapolated": str(bool(note)).lower()}))
+                "extrapolated": str(bool(note)).lower(),
+                "verdict": uncertainty["verdict"] if uncertainty else ("stable" if report["stable"] else "unstable")}))
             self.get_logger().info(f"{model_id} at ug={ug:g}: {message}, max real part {report['max_real']:.4g} 1/s, "
                                    f"ug margin {report['ug_margin']:.4g}")
         if locus is not None:
