@@ -320,6 +320,7 @@ def run_demo(out: Path, quiet: bool = False, method: str | None = None, timeout:
 
 def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool) -> int:
     from ..analysis.metrics import protocol_errors, spectrum_wasserstein
+    from ..analysis.operating_point import undetermined_ug_ranges
     from ..data import read_dataset
     from ..plant import InverterPlant
     from ..report.figures import plot_spectra, plot_stability_scan, plot_trajectories
@@ -368,6 +369,8 @@ def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool
     except Exception as err:  # a model that cannot simulate the test set is reported, not fatal
         say(f"model simulation on the test recording failed: {err}")
     stability["errors_pct"] = errors
+    if locus:
+        stability["undetermined_ug"] = undetermined_ug_ranges(model, locus["ug"])
     (out / "stability.json").write_text(json.dumps(_clean(stability), indent=1) + "\n")
     if 0.8 in spectra:
         plot_spectra({"plant ug = 0.8": spectra[0.8][1], "model ug = 0.8": spectra[0.8][0]},
@@ -404,13 +407,19 @@ def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool
         if not r.equilibrium_found:
             say(f"ug = {ug:g}: model: {r.message}{plant_text}")
             continue
-        say(f"ug = {ug:g}: model {'stable' if r.stable else 'UNSTABLE'}, max Re λ = {r.max_real_part:+.3f} 1/s, "
-            f"min ζ = {r.min_damping_ratio:.3f}, ug margin {r.ug_margin:.3f} p.u., W1 to plant "
-            f"{stability['operating_points'][f'{ug:g}']['wasserstein_to_plant']:.1f}{plant_text}")
+        open_verdict = " (not decided by the data)" if "not decided by the data" in r.message else ""
+        say(f"ug = {ug:g}: model {'stable' if r.stable else 'UNSTABLE'}{open_verdict}, max Re λ = "
+            f"{r.max_real_part:+.3f} 1/s, min ζ = {r.min_damping_ratio:.3f}, ug margin {r.ug_margin:.3f} p.u., "
+            f"W1 to plant {stability['operating_points'][f'{ug:g}']['wasserstein_to_plant']:.1f}{plant_text}")
     if locus:
         bounds = ", ".join(f"{b:.4f}" for b in locus["boundaries"])
         low, high = locus["ug"][0], locus["ug"][-1]
         say(f"stability boundary in grid voltage (model): ug = {bounds or f'none in [{low:g}, {high:g}]'}")
+        open_ranges = stability.get("undetermined_ug")
+        if open_ranges:
+            stretches = ", ".join(f"{a:.3g}-{b:.3g}" if b > a else f"{a:.3g}" for a, b in open_ranges)
+            say(f"  the data do not decide stability at ug {stretches} (the model's largest real part within two "
+                f"standard deviations of 0): a boundary there is the model's guess")
     say(f"stability boundary in grid voltage: ug = {', '.join(f'{b:.4f}' for b in plant_part['ug_boundaries'])} p.u. "
         f"(plant)")
     if errors:
