@@ -41,8 +41,9 @@ from pisml_ros.signals import SAMPLE_RATE_HZ, SCORED_STATES
 METHODS = ("pisml", "pisml-nojac", "mod-sindy", "std-sindy", "node")
 # further 40 dB training recordings (scenario and noise seeds; 0 is the main table's): one recording
 # says little where a fit on noisy data is this sensitive to the draw (stop 19: IOD 0.32-1.13 %,
-# OOD 0.72-2.97 % over six recordings with the same settings)
-RECORDINGS = (1, 2, 3, 4)
+# OOD 0.72-2.97 % over six recordings with the same settings); stop 35 doubled them to ten: on
+# recordings 0-4 both 40 dB targets held on four, on 5-8 (scratch runs) on one
+RECORDINGS = (1, 2, 3, 4, 5, 6, 7, 8, 9)
 # SNR (dB) of the "vs SNR" sweep besides the main table's 40 dB (stop 21 added 30 and 50: data
 # noisier or cleaner than the protocol's, as a user's recordings may be)
 SNR_SWEEP = (20.0, 30.0, 50.0, 60.0)
