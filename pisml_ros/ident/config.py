@@ -286,8 +286,8 @@ class IdentConfig:
     # (off / 3e-4): 0.58 / 0.60 (114) / 0.46 / 0.50 (89), 0.52 / 0.64 (93) / 0.74 / 0.62 (77),
     # 0.57 / 0.84 (89) / 0.16 / 0.94 (78), 0.21 / 0.26 (107) / 0.65 / 0.17 (78), 0.29 / 0.46 (110) /
     # 0.32 / 0.89 (97): over the ten, 6 within both targets either way (different ones), 84
-    # coefficients or fewer (the 250× compression) on 1 against 5, W at ug 0.8 median 5.5
-    # against 3.6; the worst OOD 1.43 against 5.53 %. Not the default
+    # coefficients or fewer (the 250× compression) on 1 against 5, W at ug 0.8 median 5.9
+    # against 3.5; the worst OOD 1.43 against 5.53 %. Not the default
     refine_ridge_weight: float = 0.0
     # where the refinement wins the selection, the sparsest pruned candidate whose free-run training
     # error is within this fraction of the best is the explicit model
