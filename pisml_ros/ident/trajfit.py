@@ -126,14 +126,20 @@ class FitResult:
     hessian: np.ndarray | None = None
     support: np.ndarray | None = None
     window: int | None = None  # samples per shooting window of the fit
+    # :attr:`hessian` without the priors' curvature (stability, equilibrium, ridge): what the data pin
+    data_hessian: np.ndarray | None = None
 
     def covariance(self) -> np.ndarray | None:
         """Covariance of the support coefficients for the measurement noise alone (not the model's
-        own error): each residual is a sample's misfit in noise units over sqrt(window + 1), so the
-        information is (window + 1) times :attr:`hessian`. None without a Hessian."""
-        if self.hessian is None or self.window is None:
+        own error, nor the priors): each residual is a sample's misfit in noise units over
+        sqrt(window + 1), so the data's information is (window + 1) times :attr:`data_hessian`.
+        Measured (stop 35, the ten 40 dB benchmark recordings' chosen models): with the priors'
+        curvature counted as data (the stability prior holds the slow modes), the plant's largest
+        real part lay within two standard deviations of the model's at 13 of 68 grid points. None
+        without a Hessian."""
+        if self.data_hessian is None or self.window is None:
             return None
-        return np.linalg.pinv(self.hessian, rcond=1e-12, hermitian=True) / (self.window + 1)
+        return np.linalg.pinv(self.data_hessian, rcond=1e-12, hermitian=True) / (self.window + 1)
 
 
 class TrajectoryFitter:
@@ -293,9 +299,11 @@ class TrajectoryFitter:
                 if mu > 1e10:
                     break
         hessian = problem.profiled_hessian(normal) if _finite(normal) else None
+        data = problem.profiled_hessian(normal, data_only=True) if hessian is not None else None
         return FitResult(problem.coefficients(theta), cost, nfev, time.monotonic() - started,
                          hessian=hessian if hessian is not None and np.all(np.isfinite(hessian)) else None,
-                         support=problem.idx, window=problem.window)
+                         support=problem.idx, window=problem.window,
+                         data_hessian=data if data is not None and np.all(np.isfinite(data)) else None)
 
 
 def _expm_row_derivatives(m, rows, vectors, tau: float):
@@ -851,14 +859,17 @@ class _ShootingProblem:
             j = torch.nan_to_num(j)
             blocks["H"] += j.T @ j
             blocks["g"] += j.T @ torch.nan_to_num(r)
+        # the priors' curvature, kept apart too: the data's alone give the coefficients' covariance
+        blocks["H_prior"] = torch.zeros_like(blocks["H"])
         for res, jac in (self._stability_residuals(theta), self._equilibrium_residuals(theta)):
             if res.size:
-                blocks["H"] += torch.tensor(jac.T @ jac)
+                blocks["H_prior"] += torch.tensor(jac.T @ jac)
                 blocks["g"] += torch.tensor(jac.T @ res)
         if self.ridge_unit.any():  # residuals unit·θ: a diagonal JᵀJ
             unit2 = torch.tensor(self.ridge_unit ** 2)
-            blocks["H"] += torch.diag(unit2)
+            blocks["H_prior"] += torch.diag(unit2)
             blocks["g"] += unit2 * torch.as_tensor(theta, dtype=unit2.dtype)
+        blocks["H"] += blocks["H_prior"]
         return blocks
 
     def damped_step(self, blocks, mu):
@@ -899,13 +910,15 @@ class _ShootingProblem:
             z, cost = trial, trial_cost
         return z
 
-    def profiled_hessian(self, blocks) -> np.ndarray:
+    def profiled_hessian(self, blocks, data_only: bool = False) -> np.ndarray:
         """JᵀJ of the coefficients with the window start states minimised out (Schur complement):
         the curvature of the cost when the starts re-adjust to a coefficient change, in
-        coefficient units (for :func:`backward_elimination`)."""
+        coefficient units (for :func:`backward_elimination`); ``data_only``: without the priors'
+        (stability, equilibrium, ridge) curvature."""
         torch = self.torch
         a = blocks["A"] + 1e-12 * torch.diag_embed(torch.diagonal(blocks["A"], dim1=1, dim2=2))
-        h = blocks["H"] - torch.einsum("wkc,wkd->cd", blocks["E"], torch.linalg.solve(a, blocks["E"]))
+        h_c = blocks["H"] - blocks["H_prior"] if data_only and "H_prior" in blocks else blocks["H"]
+        h = h_c - torch.einsum("wkc,wkd->cd", blocks["E"], torch.linalg.solve(a, blocks["E"]))
         return h.numpy() / np.outer(self.scale, self.scale)
 
 
