@@ -115,36 +115,50 @@ def coverage_note(coverage: dict | None) -> str:
 
 def max_real_part(system, ug: float, theta_g: float = 0.0) -> float:
     """Largest real part of the eigenvalues at the equilibrium for (ug, theta_g)."""
+    return _equilibrium_and_max_real(system, ug, theta_g)[1]
+
+
+def _equilibrium_and_max_real(system, ug: float, theta_g: float = 0.0) -> tuple:
+    """The equilibrium for (ug, theta_g) and the largest real part of the eigenvalues there."""
     x = system.equilibrium(ug, theta_g)
-    return float(np.max(np.linalg.eigvals(system.jacobian(x, np.array([ug, theta_g]))).real))
+    return x, float(np.max(np.linalg.eigvals(system.jacobian(x, np.array([ug, theta_g]))).real))
 
 
 def ug_stability_margin(system, ug: float, theta_g: float = 0.0, ug_range=(0.2, 1.3), points: int = 23) -> dict:
-    """Stability boundaries in grid voltage and the distance of ``ug`` to the nearest one."""
+    """Stability boundaries in grid voltage and the distance of ``ug`` to the nearest one (and,
+    for a system with a coefficient covariance, :func:`undetermined_ug_ranges`)."""
     grid = np.linspace(ug_range[0], ug_range[1], points)
-    bounds = stability_boundaries(lambda g: max_real_part(system, g, theta_g), grid)
+    solved: dict = {}  # the grid's equilibria serve both scans
+
+    def at(g):
+        if g not in solved:
+            solved[g] = _equilibrium_and_max_real(system, g, theta_g)
+        return solved[g]
+
+    bounds = stability_boundaries(lambda g: at(g)[1], grid)
     out = {"boundaries": bounds, "ug_margin": distance_to_boundary(ug, bounds)}
-    undetermined = undetermined_ug_ranges(system, grid, theta_g)
+    undetermined = undetermined_ug_ranges(system, grid, theta_g, solve=at)
     if undetermined is not None:
         out["undetermined_ug"] = undetermined
     return out
 
 
-def undetermined_ug_ranges(system, grid, theta_g: float = 0.0) -> list | None:
+def undetermined_ug_ranges(system, grid, theta_g: float = 0.0, solve=None) -> list | None:
     """The stretches ``[first, last]`` of the grid voltages ``grid`` where the identification data do
     not decide the stability verdict (:func:`verdict_uncertainty`: "undetermined"); None where the
     system carries no coefficient covariance. A boundary found inside such a stretch is where the
-    model puts it, not where the data pin it."""
+    model puts it, not where the data pin it. ``solve(g) -> (equilibrium, largest real part)``:
+    where the caller has them already."""
     from .uncertainty import coefficient_covariance
 
     if coefficient_covariance(system) is None:
         return None
+    solve = solve or (lambda g: _equilibrium_and_max_real(system, g, theta_g))
     ranges: list = []
     previous = False
     for g in grid:
         try:
-            x = system.equilibrium(float(g), theta_g)
-            max_real = float(np.max(np.linalg.eigvals(system.jacobian(x, np.array([g, theta_g]))).real))
+            x, max_real = solve(float(g))
             verdict = (verdict_uncertainty(system, x, (g, theta_g), max_real) or {}).get("verdict")
         except (RuntimeError, ValueError, np.linalg.LinAlgError, FloatingPointError):  # no equilibrium
             verdict = None

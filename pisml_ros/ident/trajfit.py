@@ -299,7 +299,8 @@ class TrajectoryFitter:
                 if mu > 1e10:
                     break
         hessian = problem.profiled_hessian(normal) if _finite(normal) else None
-        data = problem.profiled_hessian(normal, data_only=True) if hessian is not None else None
+        # the priors' curvature is a plain sum in the normal equations: the data's is the rest
+        data = hessian - problem.prior_hessian(normal) if hessian is not None else None
         return FitResult(problem.coefficients(theta), cost, nfev, time.monotonic() - started,
                          hessian=hessian if hessian is not None and np.all(np.isfinite(hessian)) else None,
                          support=problem.idx, window=problem.window,
@@ -910,16 +911,19 @@ class _ShootingProblem:
             z, cost = trial, trial_cost
         return z
 
-    def profiled_hessian(self, blocks, data_only: bool = False) -> np.ndarray:
+    def profiled_hessian(self, blocks) -> np.ndarray:
         """JᵀJ of the coefficients with the window start states minimised out (Schur complement):
         the curvature of the cost when the starts re-adjust to a coefficient change, in
-        coefficient units (for :func:`backward_elimination`); ``data_only``: without the priors'
-        (stability, equilibrium, ridge) curvature."""
+        coefficient units (for :func:`backward_elimination`)."""
         torch = self.torch
         a = blocks["A"] + 1e-12 * torch.diag_embed(torch.diagonal(blocks["A"], dim1=1, dim2=2))
-        h_c = blocks["H"] - blocks["H_prior"] if data_only and "H_prior" in blocks else blocks["H"]
-        h = h_c - torch.einsum("wkc,wkd->cd", blocks["E"], torch.linalg.solve(a, blocks["E"]))
+        h = blocks["H"] - torch.einsum("wkc,wkd->cd", blocks["E"], torch.linalg.solve(a, blocks["E"]))
         return h.numpy() / np.outer(self.scale, self.scale)
+
+    def prior_hessian(self, blocks) -> np.ndarray:
+        """The priors' (stability, equilibrium, ridge) part of :meth:`profiled_hessian`, in
+        coefficient units (they do not involve the window start states)."""
+        return blocks["H_prior"].numpy() / np.outer(self.scale, self.scale)
 
 
 def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support: np.ndarray,
