@@ -48,9 +48,10 @@ def verdict_uncertainty(system, x, inputs, max_real: float) -> dict | None:
     baselines, models saved before it was recorded)."""
     from .uncertainty import VERDICT_SIGMAS, coefficient_covariance, max_real_std, stability_verdict
 
-    if coefficient_covariance(system) is None:
+    stored = coefficient_covariance(system)
+    if stored is None:
         return None
-    std = max_real_std(system, x, np.asarray(inputs, dtype=float))
+    std = max_real_std(system, x, np.asarray(inputs, dtype=float), stored)
     if std is None:
         return None
     return {"max_real_std": std,
