@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum_wasserstein
+from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum_wasserstein, vector_relative_error
 from pisml_ros.data import Dataset, Trajectory, read_dataset, write_dataset
 from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
 from pisml_ros.ident.backbone import fit_backbone, noise_moments, sparse_regression
@@ -110,6 +110,7 @@ def test_backbone_is_fast_sparse_and_close(train, test_set):
                          threshold=0.02)
     errs = protocol_errors(plain, test_set)
     assert errs["iod"] < 10 and errs["ood"] < 10
+    assert set(errs) == {"iod", "ood", "iod_vector", "ood_vector"} and all(map(math.isfinite, errs.values()))
 
 
 def test_noise_compensated_regression_removes_the_errors_in_variables_bias():
@@ -336,6 +337,12 @@ def test_metrics():
     assert relative_error(y, y) == 0
     assert math.isclose(relative_error(1.1 * y, y), 10.0)
     assert relative_error(np.full((10, 2), np.nan), y) == math.inf
+    # a small column: per column it weighs as much as the large one, taken together hardly at all
+    truth = np.column_stack([np.full(10, 2.0), np.full(10, 0.01)])
+    pred = truth + [0.0, 0.01]
+    assert math.isclose(relative_error(pred, truth), 50.0)
+    assert math.isclose(vector_relative_error(pred, truth), 100 * 0.01 / math.hypot(2.0, 0.01))
+    assert vector_relative_error(np.full((10, 2), np.inf), y) == math.inf
     a = np.array([-1 + 2j, -1 - 2j, -5])
     assert spectrum_wasserstein(a, a) == 0
     assert math.isclose(spectrum_wasserstein(a, a + 3), 3.0)

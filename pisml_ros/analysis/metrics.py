@@ -21,6 +21,24 @@ def relative_error(pred: np.ndarray, truth: np.ndarray) -> float:
     return float(np.mean(errs))
 
 
+def vector_relative_error(pred: np.ndarray, truth: np.ndarray) -> float:
+    """ε with the columns taken together: the mean over samples of ‖ŷ(t) − y(t)‖ / ‖y(t)‖ · 100 %
+    (NaN/inf predictions count as 100 % or more).
+
+    The paper's "relative L2 norm averaged over [i_d, i_q, v_d, v_q]" can be read either way;
+    :func:`relative_error` (per column, then averaged) is the strict reading: a column with a small
+    norm, such as vc_q near a grid-aligned operating point, weighs as much as the large reactive
+    current. This reading is the scale of the issue's anchors: on the benchmark's ten 40 dB
+    recordings Mod-SINDy scores a median of 1.7 / 4.0 % IOD / OOD with it (the anchors: about
+    2.0 / 4.3 %) and 7.6 / 7.2 % per column.
+    """
+    diff = pred - truth
+    if not np.all(np.isfinite(diff)):
+        return np.inf
+    norms = np.maximum(np.linalg.norm(truth, axis=1), 1e-12)
+    return float(np.mean(np.linalg.norm(diff, axis=1) / norms) * 100)
+
+
 def window_error(model, test: Dataset, traj_index: int, t_from: float, t_to: float,
                  states: Sequence[str] = SCORED_STATES) -> float:
     """ε of ``model`` on one trajectory of ``test`` (simulated from its first sample) over [t_from, t_to)."""
@@ -36,7 +54,8 @@ def protocol_errors(model, test: Dataset, t_split: float = 0.02) -> dict:
     :func:`pisml_ros.plant.scenarios.evaluation_schedules`:
 
     - ``iod``: the trajectory with the phase jump (the last one), window [0, t_split);
-    - ``ood``: the sag to 0.4 p.u. (the first one), window [t_split, end].
+    - ``ood``: the sag to 0.4 p.u. (the first one), window [t_split, end];
+    - ``iod_vector``, ``ood_vector``: the same windows scored by :func:`vector_relative_error`.
     """
     cols = test.state_index(SCORED_STATES)
     preds = model.simulate(test)
@@ -45,8 +64,10 @@ def protocol_errors(model, test: Dataset, t_split: float = 0.02) -> dict:
     tr_s, pr_s = test.trajectories[sag], preds.trajectories[sag]
     iod = tr_j.t < t_split - 1e-12
     ood = tr_s.t >= t_split - 1e-12
-    return {"iod": relative_error(pr_j.x[iod][:, cols], tr_j.x[iod][:, cols]),
-            "ood": relative_error(pr_s.x[ood][:, cols], tr_s.x[ood][:, cols])}
+    windows = {"iod": (pr_j.x[iod][:, cols], tr_j.x[iod][:, cols]), "ood": (pr_s.x[ood][:, cols], tr_s.x[ood][:, cols])}
+    out = {key: relative_error(*pair) for key, pair in windows.items()}
+    out.update({f"{key}_vector": vector_relative_error(*pair) for key, pair in windows.items()})
+    return out
 
 
 def spectrum_wasserstein(eigs_a, eigs_b) -> float:

@@ -423,7 +423,8 @@ def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool
     say(f"stability boundary in grid voltage: ug = {', '.join(f'{b:.4f}' for b in plant_part['ug_boundaries'])} p.u. "
         f"(plant)")
     if errors:
-        say(f"test recording: ε_IOD = {errors['iod']:.2f} %, ε_OOD = {errors['ood']:.2f} %")
+        say(f"test recording: ε_IOD = {errors['iod']:.2f} %, ε_OOD = {errors['ood']:.2f} % (per scored state; "
+            f"the four states taken together: {errors['iod_vector']:.2f} %, {errors['ood_vector']:.2f} %)")
     say(f"report folder: {out}/ (model.json, equations.txt, stability.json, model_vs_measured.png, eigenvalues.png, "
         f"coefficients.png, training_curves.png, stability_scan*.png, logs/)")
     return 0
