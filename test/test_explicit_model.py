@@ -346,6 +346,29 @@ def test_term_gradients_by_the_product_rule_match_autodiff():
     assert not TermSet(["vc_d*ig_d + vc_q*ig_q", "Abs(il_q)"], signals).thread_safe_gradient()
 
 
+def test_term_values_by_the_product_plan_match_the_generated_functions():
+    """Rows of points go through the product plan (one gather and product); a single point and term
+    sets without a plan through sympy's generated function. Terms of degree up to 2 give the same
+    values to the bit (a refinement's selection replays its candidates on them)."""
+    from pisml_ros.model.expressions import TermSet
+
+    signals = STATE_NAMES + INPUT_NAMES
+    z = np.random.default_rng(5).normal(size=(3, 8, len(signals)))
+    for terms, exact in ((["1", "il_d", "Pf*vc_q", "vc_d**2", "ug*cos(theta_g - delta)", "cos(delta)"], True),
+                         (["1", "il_d", "il_d*(Pf - 0.5)", "(Pf - 0.5)**2"], True),
+                         (["1", "Pf*ig_q*vc_d", "sin(delta)**2*il_q"], False)):
+        ts = TermSet(terms, signals)
+        values = ts.evaluate(z)
+        assert ts._numpy_gather, terms
+        single = np.array([[ts.evaluate(point) for point in row] for row in z])  # no plan for one point
+        if exact:
+            assert np.array_equal(values, single), terms
+        np.testing.assert_allclose(values, single, rtol=1e-14, atol=1e-14)
+    plain = TermSet(["vc_d*ig_d + vc_q*ig_q", "tanh(il_d)"], signals)
+    np.testing.assert_allclose(plain.evaluate(z)[1, 2], plain.evaluate(z[1, 2]), rtol=1e-15)
+    assert plain._numpy_gather is False
+
+
 def test_terms_with_numbers_inside_functions_evaluate_in_torch():
     """A model JSON may hold terms whose generated code hands a plain number to a function
     (sqrt(2)*x calls sqrt(2); Min(x, 1) passes 1): torch's functions reject those, so the

@@ -120,6 +120,7 @@ class TermSet:
         self.exprs = [parse_term(t, self.signals) for t in self.terms]
         self._symbols = [sympy.Symbol(n, real=True) for n in self.signals]
         self._numpy = None
+        self._numpy_gather = None
         self._torch = None
         self._plan = None
         self._grad_plan = None
@@ -137,6 +138,8 @@ class TermSet:
         if self._numpy is None:
             self._numpy = sympy.lambdify(self._symbols, self.exprs, modules="numpy", cse=True)
         z = np.asarray(z, dtype=float)
+        if z.ndim > 1 and self._numpy_plan():
+            return self._gathered_numpy(z)
         cols = self._numpy(*np.moveaxis(z, -1, 0))
         if z.ndim == 1:  # one point (equilibrium searches): scalars, no broadcasting needed
             return np.array(cols, dtype=float)
@@ -146,6 +149,43 @@ class TermSet:
         for k, c in enumerate(cols):
             out[..., k] = c
         return out
+
+    def _numpy_plan(self) -> bool:
+        """Compile the product plan for numpy once (:meth:`_torch_plan`'s, over numpy arrays); False
+        when the terms are not all products of factors."""
+        if self._numpy_gather is None:
+            plan = self._product_plan()
+            if plan is None:
+                self._numpy_gather = False
+            else:
+                factors, index = plan
+                others = [f for f in factors if f not in self._symbols]
+                position = [0] + [1 + self._symbols.index(f) if f in self._symbols
+                                  else 1 + len(self._symbols) + others.index(f) for f in factors]
+                fn = sympy.lambdify(self._symbols, others, modules="numpy", cse=True) if others else None
+                self._numpy_gather = (fn, len(others), np.asarray(position)[index])
+        return self._numpy_gather is not False
+
+    def _gathered_numpy(self, z: np.ndarray) -> np.ndarray:
+        """:meth:`evaluate` by the product plan: ``[1, signals, other factors]`` once, then each
+        term's factors gathered and multiplied. A free run calls the vector field some twenty
+        thousand times on a few dozen rows; per call this is ~19 µs where a generated function's
+        column per term is ~33 µs (measured on a 31-term 40 dB model, 48 rows). The products are
+        the generated function's own for terms of degree up to 2 (the same values to the bit)."""
+        fn, n_others, index = self._numpy_gather
+        n_signals = z.shape[-1]
+        base = np.empty(z.shape[:-1] + (1 + n_signals + n_others,))
+        base[..., 0] = 1.0
+        base[..., 1:1 + n_signals] = z
+        if fn is not None:
+            for k, column in enumerate(fn(*np.moveaxis(z, -1, 0))):
+                base[..., 1 + n_signals + k] = column
+        factors = base[..., index]
+        if index.shape[1] == 1:
+            return factors[..., 0]
+        if index.shape[1] == 2:
+            return factors[..., 0] * factors[..., 1]
+        return factors.prod(axis=-1)
 
     def _product_plan(self):
         """Every term as a product of factors (signals or non-polynomial sub-expressions such as
