@@ -135,11 +135,11 @@ class TermSet:
 
     def evaluate(self, z: np.ndarray) -> np.ndarray:
         """Term values for signal rows ``z`` (..., n_signals) -> (..., n_terms)."""
-        if self._numpy is None:
-            self._numpy = sympy.lambdify(self._symbols, self.exprs, modules="numpy", cse=True)
         z = np.asarray(z, dtype=float)
         if z.ndim > 1 and self._numpy_plan():
             return self._gathered_numpy(z)
+        if self._numpy is None:
+            self._numpy = sympy.lambdify(self._symbols, self.exprs, modules="numpy", cse=True)
         cols = self._numpy(*np.moveaxis(z, -1, 0))
         if z.ndim == 1:  # one point (equilibrium searches): scalars, no broadcasting needed
             return np.array(cols, dtype=float)
@@ -154,16 +154,13 @@ class TermSet:
         """Compile the product plan for numpy once (:meth:`_torch_plan`'s, over numpy arrays); False
         when the terms are not all products of factors."""
         if self._numpy_gather is None:
-            plan = self._product_plan()
-            if plan is None:
+            layout = self._plan_layout()
+            if layout is None:
                 self._numpy_gather = False
             else:
-                factors, index = plan
-                others = [f for f in factors if f not in self._symbols]
-                position = [0] + [1 + self._symbols.index(f) if f in self._symbols
-                                  else 1 + len(self._symbols) + others.index(f) for f in factors]
+                others, index = layout
                 fn = sympy.lambdify(self._symbols, others, modules="numpy", cse=True) if others else None
-                self._numpy_gather = (fn, len(others), np.asarray(position)[index])
+                self._numpy_gather = (fn, len(others), index)
         return self._numpy_gather is not False
 
     def _gathered_numpy(self, z: np.ndarray) -> np.ndarray:
@@ -256,6 +253,21 @@ class TermSet:
             self._derivative_exprs = [[sympy.diff(e, s) for s in self._symbols] for e in self.exprs]
         return self._derivative_exprs
 
+    def _plan_layout(self):
+        """The product plan over the base ``[1, every signal, the other factors]``: (the factors that
+        are not plain signals, the index matrix n_terms × max_degree into the base), or None when
+        the terms are not all products of factors. The signals go into the base as one block, not a
+        generated function's column each (the refinement's state pass and the free runs evaluate
+        the terms at every RK4 stage on small batches, where each operation launched counts)."""
+        plan = self._product_plan()
+        if plan is None:
+            return None
+        factors, index = plan
+        others = [f for f in factors if f not in self._symbols]
+        position = [0] + [1 + self._symbols.index(f) if f in self._symbols
+                          else 1 + len(self._symbols) + others.index(f) for f in factors]
+        return others, np.asarray(position)[index]
+
     def _torch_plan(self) -> bool:
         """Compile the product plan for torch once (the functions of the factors that are not plain
         signals, and the index into :meth:`_factor_base`); False when the terms are not all products
@@ -263,20 +275,14 @@ class TermSet:
         if self._plan is None:
             import torch
 
-            plan = self._product_plan()
-            if plan is None:
+            layout = self._plan_layout()
+            if layout is None:
                 self._plan = False
             else:
-                factors, index = plan
-                # the base is [1, every signal, the other factors]: the signals go in as one block, not
-                # a generated function's column each (the refinement's state pass evaluates the terms
-                # at every RK4 stage on small batches, where each operation launched counts)
-                others = [f for f in factors if f not in self._symbols]
-                position = [0] + [1 + self._symbols.index(f) if f in self._symbols
-                                  else 1 + len(self._symbols) + others.index(f) for f in factors]
+                others, index = layout
                 fn = sympy.lambdify(self._symbols, others, modules=[_torch_module(), "math"], cse=True) \
                     if others else None
-                self._plan = (fn, torch.as_tensor(np.asarray(position)[index]))
+                self._plan = (fn, torch.as_tensor(index))
                 self._factors = list(self._symbols) + others  # the base's entries, for :meth:`gradient_torch`
         return self._plan is not False
 
