@@ -29,7 +29,7 @@ def vector_relative_error(pred: np.ndarray, truth: np.ndarray) -> float:
     :func:`relative_error` (per column, then averaged) is the strict reading: a column with a small
     norm, such as vc_q near a grid-aligned operating point, weighs as much as the large reactive
     current. This reading is the scale of the issue's anchors: on the benchmark's ten 40 dB
-    recordings Mod-SINDy scores a median of 1.7 / 4.0 % IOD / OOD with it (the anchors: about
+    recordings Mod-SINDy scores a median of 1.7 / 4.1 % IOD / OOD with it (the anchors: about
     2.0 / 4.3 %) and 7.6 / 7.2 % per column.
     """
     diff = pred - truth
