@@ -313,14 +313,14 @@ def test_demo_runs_the_live_graph_and_writes_its_report(tmp_path):
     text = proc.stdout
     for expected in ("all three nodes are up", "model mod-sindy-1 on /pisml/model: stage explicit",
                      "d(delta)/dt = ", "eigenvalues at ug = 0.8 p.u.", "ug = 1.2: model",
-                     "stability boundary in grid voltage: ug = 1.16", "ε_IOD"):
+                     "stability boundary in grid voltage: ug = 1.16", "ε_IOD", "the four states taken together"):
         assert expected in text, text
     model = json.loads((out / "model.json").read_text())
     assert model["format"] == "pisml-explicit-model/1" and len(model["states"]) == 13
     stability = json.loads((out / "stability.json").read_text())
     assert set(stability["operating_points"]) == {"0.4", "0.8", "1", "1.2"}
     assert stability["plant"]["ug_boundaries"] == pytest.approx([1.1661], abs=1e-3)
-    assert len(stability["root_locus"]["ug"]) == 23 and set(stability["errors_pct"]) == {"iod", "ood"}
+    assert len(stability["root_locus"]["ug"]) == 23 and set(stability["errors_pct"]) == {"iod", "ood", "iod_vector", "ood_vector"}
     for name in ("model_vs_measured.png", "eigenvalues.png", "coefficients.png", "training_curves.png",
                  "stability_scan.png", "test_trajectories.png"):
         assert (out / name).stat().st_size > 10_000, name
