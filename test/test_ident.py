@@ -15,7 +15,7 @@ from pisml_ros.ident.trajfit import backward_elimination
 from pisml_ros.model import ExplicitModel
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
-from pisml_ros.signals import INPUT_NAMES, STATE_NAMES
+from pisml_ros.signals import INPUT_NAMES, SCORED_STATES, STATE_NAMES
 
 # a small, fast PISML configuration: the pipeline end to end in seconds
 FAST = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
@@ -374,7 +374,14 @@ def test_identify_simulate_analyse_cli(tmp_path, train, capsys):
     pred = tmp_path / "pred.csv"
     assert main(["simulate", "--model", str(out), "--data", str(data), "--out", str(pred)]) == 0
     assert len(read_dataset(pred)) == len(train)
-    capsys.readouterr()
+    printed = capsys.readouterr().out
+    # the command's own computation: the records as read back, replayed through the saved model
+    measured = read_dataset(data)
+    cols = measured.state_index(SCORED_STATES)
+    first = ExplicitModel.load(out).simulate(measured).trajectories[0].x[:, cols], measured.trajectories[0].x[:, cols]
+    assert (f"trajectory {train.trajectories[0].traj_id}: relative error " in printed
+            and f"ig_d, ig_q, vc_d, vc_q: {relative_error(*first):.4g} % per state, "
+                f"{vector_relative_error(*first):.4g} % taken together\n" in printed), printed
     assert main(["analyse", "--model", str(out), "--ug", "0.9", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert len(report["eigenvalues"]) == 13 and "stable" in report
