@@ -70,9 +70,9 @@ def cmd_simulate(args) -> int:
 
 def _simulate_model(args) -> int:
     from .analysis.metrics import relative_error, vector_relative_error
-    from .signals import SCORED_STATES
     from .data import concat_datasets, read_dataset, write_dataset
     from .model import ExplicitModel
+    from .signals import SCORED_STATES
 
     if not args.data:
         raise UserError("--model needs --data PATH (the trajectories whose inputs and initial states are replayed)")
@@ -93,8 +93,9 @@ def _simulate_model(args) -> int:
         err = relative_error(pr.x, truth)
         line = f"trajectory {tr.traj_id}: relative error {err:.4g} % (all states)"
         if scored:
-            line += (f"; {', '.join(SCORED_STATES)}: {relative_error(pr.x[:, scored], truth[:, scored]):.4g} % per "
-                     f"state, {vector_relative_error(pr.x[:, scored], truth[:, scored]):.4g} % taken together")
+            pair = pr.x[:, scored], truth[:, scored]
+            line += (f"; {', '.join(SCORED_STATES)}: {relative_error(*pair):.4g} % per state, "
+                     f"{vector_relative_error(*pair):.4g} % taken together")
         print(line)
     pred.metadata.update({"model": str(args.model), "command": "pisml " + " ".join(sys.argv[1:])})
     out = write_dataset(pred, args.out)
