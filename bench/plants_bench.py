@@ -77,7 +77,7 @@ def main(argv=None) -> int:
 
 def write(args, rows, started, final=False):
     """The results JSON after every fit (a crash loses nothing) and the markdown table."""
-    from bench import fmt, machine, missing_text, spurious_text
+    from bench import fmt, machine, missing_text, spurious_text, vector_text
 
     result = {"complete": final, "command": "python bench/plants_bench.py " + " ".join(sys.argv[1:]),
               "date": time.strftime("%Y-%m-%d"),
@@ -90,12 +90,14 @@ def write(args, rows, started, final=False):
              "The paper protocol (bench/bench.py's schedules, seeds and noise) on inverters with other "
              "parameters (`bench/plants_bench.py`, PLANT_PARAMETERS); errors against each plant's clean truth. "
              "Spurious: an unstable model mode where the plant is stable (ug 0.2-1.1); no equilibrium: "
-             "grid points where the analysis finds none (the plant has one at each).", "",
-             "| plant | seed | data | method | IOD % | OOD % | W (ug 0.8) | coefficients | spurious | no equilibrium | ΔQ op. | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "grid points where the analysis finds none (the plant has one at each). IOD / OOD vector: the four "
+             "scored states taken together (RESULTS.md).", "",
+             "| plant | seed | data | method | IOD % | OOD % | IOD / OOD vector % | W (ug 0.8) | coefficients | spurious | "
+             "no equilibrium | ΔQ op. | s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['plant']} | {r['seed']} | {r['noise']} | {r['method']} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
-                     f"{fmt(r.get('wasserstein_ug08'))} | {r.get('n_parameters', '—')} | {spurious_text(r)} | "
+                     f"{vector_text(r)} | {fmt(r.get('wasserstein_ug08'))} | {r.get('n_parameters', '—')} | {spurious_text(r)} | "
                      f"{missing_text(r)} | {fmt(r.get('op_dq'), 2)} | "
                      f"{r['seconds']:.0f} |")
     lines += ["", "PISML at 40 dB, recordings within both accuracy targets (IOD ≤ 0.5 %, OOD ≤ 1 %), with no "

@@ -88,7 +88,7 @@ def main(argv=None) -> int:
 
 def write(args, rows, started, final=False):
     """The results JSON after every fit (a crash loses nothing) and the markdown table."""
-    from bench import fmt, machine, missing_text, spurious_text
+    from bench import fmt, machine, missing_text, spurious_text, vector_text
 
     result = {"complete": final, "command": "python bench/scenarios_bench.py " + " ".join(sys.argv[1:]),
               "date": time.strftime("%Y-%m-%d"),
@@ -106,13 +106,14 @@ def write(args, rows, started, final=False):
              "The paper protocol with one thing changed (`bench/scenarios_bench.py`, SCENARIOS); the default plant; "
              "the protocol's test records, errors against the clean truth (IOD / OOD as in RESULTS.md). "
              "Spurious: an unstable model mode where the plant is stable (ug 0.2-1.1; '(in data)': inside the "
-             "grid voltages of the records); no equilibrium: grid points where the analysis finds none.", "",
-             "| scenario | seed | data | IOD % | OOD % | W (ug 0.8) | coefficients | spurious | no equilibrium | "
-             "ΔQ op. | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "grid voltages of the records); no equilibrium: grid points where the analysis finds none. "
+             "IOD / OOD vector: the four scored states taken together (RESULTS.md).", "",
+             "| scenario | seed | data | IOD % | OOD % | IOD / OOD vector % | W (ug 0.8) | coefficients | spurious | "
+             "no equilibrium | ΔQ op. | s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['scenario']} | {r['seed']} | {r['noise']}{' (kept)' if r.get('kept') else ''} | "
-                     f"{fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
+                     f"{fmt(r.get('iod'))} | {fmt(r.get('ood'))} | {vector_text(r)} | "
                      f"{fmt(r.get('wasserstein_ug08'))} | {r.get('n_parameters', '—')} | {spurious_text(r)} | "
                      f"{missing_text(r)} | {fmt(r.get('op_dq'), 2)} | "
                      f"{r['seconds']:.0f} |")
