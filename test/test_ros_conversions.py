@@ -87,10 +87,10 @@ def test_root_locus_of_the_plant_finds_its_boundary():
 
 
 def test_analyser_warm_up_runs_the_analysis_path_without_error():
-    # it swallows its errors in the node (a failed warm-up costs speed only): here they must not occur
+    # the node only logs a failed warm-up (it costs the first report its speed): here it must not fail
     from pisml_ros.ros.analyser import warm_up
 
-    assert warm_up(raise_errors=True) >= 0.0
+    assert warm_up() >= 0.0
 
 
 def test_demo_takes_the_reports_on_the_final_model_not_on_an_earlier_stage_of_its_run():

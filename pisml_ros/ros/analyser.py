@@ -86,37 +86,27 @@ def root_locus(system, grid, theta_g: float = 0.0) -> dict:
             "boundaries": boundaries, "errors": errors}
 
 
-def warm_up(raise_errors: bool = False) -> float:
+def warm_up() -> float:
     """Pay the analysis's one-time costs on a two-state model: the model module and sympy
-    imported, term code generated, scipy's root finder and LAPACK called. The worker runs it at
-    start-up, so that the first identified model's report comes as fast as the later ones.
+    imported, term code generated, scipy's root finder and LAPACK called. The node's worker runs it
+    at start-up, so that the first identified model's report comes as fast as the later ones.
 
     Measured (stop 37, 2 cores): a 78-coefficient model from import to report 0.42 s cold, 0.09 s
     after this; in the live graph (``bench/ros_bench.py``) the first report came 1.05 s after the
-    backbone model before it (target 1 s) and 0.44 s with it.
-
-    Parameters
-    ----------
-    raise_errors : bool
-        Raise what the warm-up hits (tests); by default a failed warm-up costs the first report its
-        speed and nothing else.
+    backbone model before it (target 1 s), 0.40-0.44 s with it (two runs).
 
     Returns
     -------
     float
         Seconds it took.
     """
-    started = time.monotonic()
-    try:
-        from ..model import ExplicitModel
+    from ..model import ExplicitModel
 
-        model = ExplicitModel(["x", "y"], ["ug", "theta_g"], ["x", "y", "ug*cos(theta_g - x)", "ug*sin(theta_g - x)"],
-                              [[-1.0, 0.0], [0.0, -1.0], [0.1, 0.0], [0.0, 0.1]])
-        operating_point_report(model, 0.8, 0.0)
-        root_locus(model, np.linspace(0.2, 1.3, 3), 0.0)
-    except Exception:  # a warm-up that fails costs the first report its speed, nothing else
-        if raise_errors:
-            raise
+    started = time.monotonic()
+    model = ExplicitModel(["x", "y"], ["ug", "theta_g"], ["x", "y", "ug*cos(theta_g - x)", "ug*sin(theta_g - x)"],
+                          [[-1.0, 0.0], [0.0, -1.0], [0.1, 0.0], [0.0, 0.1]])
+    operating_point_report(model, 0.8, 0.0)
+    root_locus(model, np.linspace(0.2, 1.3, 3), 0.0)
     return time.monotonic() - started
 
 
@@ -214,7 +204,10 @@ class AnalyserNode(Node):
             self.lock.notify()
 
     def _work(self):
-        self.get_logger().debug(f"analysis warmed up in {warm_up():.2f} s")
+        try:
+            self.get_logger().debug(f"analysis warmed up in {warm_up():.2f} s")
+        except Exception as err:  # costs the first report its speed, nothing else
+            self.get_logger().warning(f"analysis warm-up failed (the first report will be slower): {err}")
         while True:
             with self.lock:
                 while self.pending is None:
