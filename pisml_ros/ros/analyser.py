@@ -100,9 +100,9 @@ def warm_up() -> float:
     float
         Seconds it took.
     """
+    started = time.monotonic()
     from ..model import ExplicitModel
 
-    started = time.monotonic()
     model = ExplicitModel(["x", "y"], ["ug", "theta_g"], ["x", "y", "ug*cos(theta_g - x)", "ug*sin(theta_g - x)"],
                           [[-1.0, 0.0], [0.0, -1.0], [0.1, 0.0], [0.0, 0.1]])
     operating_point_report(model, 0.8, 0.0)
