@@ -291,6 +291,26 @@ def test_pisml_pipeline_stages_and_model(train, small, test_set):
     assert errs["iod"] < 10 and errs["ood"] < 10
     eig = model.eigenvalues(0.8, 0.0)
     assert eig.shape == (13,) and np.all(np.isfinite(eig))
+    # a candidate reproduces these clean records within clean_growing_error: no growing-window fallback
+    assert min(selection["training_error_pct"].values()) < IdentConfig().clean_growing_error
+    assert "refinement_growing_fallback" not in model.metadata
+    assert not any(name.endswith("from distilled") for name in est.candidates_)
+
+
+def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_from_the_merged_model(train, small):
+    # with clean_growing_error 0 no candidate is good enough: the merged model is refined as noisy
+    # records are (coarse samples leave the equation-error starts wrong, IdentConfig.clean_growing_error)
+    est = make_estimator("pisml", IdentConfig.from_mapping({**FAST, "clean_growing_error": 0.0})).fit(train, small)
+    refined = est.candidates_["refined from distilled"]
+    assert refined.metadata["refinement"]["start"] == "distilled"
+    assert refined.metadata["refinement"]["growing_windows"]["windows"] == list(IdentConfig().refine_growing_windows)
+    assert "pruned +0.1 % from distilled" in est.candidates_
+    selection = est.explicit_model_.metadata["selection"]
+    fallback = est.explicit_model_.metadata["refinement_growing_fallback"]
+    before = [v for k, v in selection["training_error_pct"].items() if not k.endswith("from distilled")]
+    assert fallback["best_error_pct"] == pytest.approx(min(before))
+    # the family competes: scored with the others
+    assert {"refined from distilled", "pruned +0.1 % from distilled"} <= set(selection["training_error_pct"])
 
 
 def test_pure_node_has_no_explicit_model_but_a_spectrum(train):
@@ -635,6 +655,23 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     one_stage = refine_explicit(model, train, small, IdentConfig.from_mapping(
         {"refine_growing_windows": "", "refine_prune_budgets": "0.01", "refine_window": 50, "refine_max_nfev": 3}))
     assert "growing_windows" not in one_stage["refined"].metadata["refinement"]
+
+
+def test_refinement_keeps_its_rk4_step_below_refine_max_step():
+    # coarse samples get more RK4 substeps (RK4's own error would bias the coefficients); fine ones
+    # keep the configured two
+    from pisml_ros.ident.estimators import refine_explicit
+    from pisml_ros.model import ExplicitModel
+
+    train, truth = _oscillator_data(4, lambda rng: [(int(rng.integers(50, 350)), rng.uniform(0.5, 1.5))], seed=3)
+    model = ExplicitModel(("xa", "xb"), ("v",), ["xa", "xb", "v"], truth * 1.05)
+    one_stage = {"refine_growing_windows": "", "refine_prune_budgets": "", "refine_window": 50, "refine_max_nfev": 3}
+    substeps = {}
+    for max_step in (0.0, 5e-5, 2.5e-5, 1.2e-5):
+        out = refine_explicit(model, train, None, IdentConfig.from_mapping({**one_stage, "refine_max_step": max_step}))
+        substeps[max_step] = out["refined"].metadata["refinement"]["rk4_substeps"]
+        np.testing.assert_allclose(out["refined"].coefficients, truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
+    assert substeps == {0.0: [2], 5e-5: [2], 2.5e-5: [4], 1.2e-5: [9]}  # dt 1e-4
 
 
 def test_refinement_shares_its_windows_out_in_at_most_two_parts(monkeypatch):

@@ -13,6 +13,7 @@ estimator; learned attributes end in ``_``:
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import time
 from typing import Callable
@@ -536,11 +537,11 @@ class PISML(_Estimator):
             started = time.monotonic()
             starts = _refinement_starts(candidates, scores, explicit.metadata.get("reference_points") or [], verdicts)
 
-            def refine_from(start, progress):
+            def refine_from(start, progress, growing=None):
                 errors: dict = {}
                 begin = _couplings_centred(_integrators_restricted(candidates[start], cfg, train), cfg, train)
                 refined = refine_explicit(begin, train, smallsignal, cfg, progress, start_error=scores[start],
-                                          errors=errors, scoring=scoring)
+                                          errors=errors, scoring=scoring, growing=growing)
                 return refined, errors
 
             def add(k, refined, errors):
@@ -573,6 +574,15 @@ class PISML(_Estimator):
                     add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
                         "refinement", 0.84 + 0.14 * fraction, losses=losses)))
                 self.metrics_["refinement_starts_run"] = float(sum(name.startswith("refined") for name in candidates))
+            if not _noisy(train) and cfg.refine_growing_windows and "distilled" in candidates \
+                    and min(scores.values()) > cfg.clean_growing_error:
+                # clean data that no candidate reproduces: the equation-error fits behind the sparse
+                # starts went wrong (coarse samples: quadrature and RK4 errors), so the merged model,
+                # every term kept, is refined as noisy data are (IdentConfig.clean_growing_error)
+                explicit.metadata["refinement_growing_fallback"] = {"best_error_pct": min(scores.values())}
+                starts.append("distilled")
+                add(len(starts) - 1, *refine_from("distilled", lambda fraction, losses: self._emit(
+                    "refinement", 0.84 + 0.14 * fraction, losses=losses), growing=True))
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the records when run freely
         # from their rest states or first samples (refinement that made things worse is dropped), or
@@ -970,7 +980,7 @@ def _rest_started(train: Dataset, min_samples: int = 5) -> Dataset:
 
 def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig,
                     progress: Callable[[float, dict], None] | None = None, start_error: float | None = None,
-                    errors: dict | None = None, scoring: Dataset | None = None) -> dict:
+                    errors: dict | None = None, scoring: Dataset | None = None, growing: bool | None = None) -> dict:
     """Multiple-shooting least-squares refinement of the nonzero coefficients of ``model``, then
     sparser models by backward elimination on the refinement's quadratic cost model.
 
@@ -988,6 +998,8 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         Receives the training errors this function computes, by candidate name.
     scoring : Dataset, optional
         The records :func:`training_error` runs on (``start_error`` is on them too); ``train`` if not given.
+    growing : bool, optional
+        Whether to refine in stages of growing windows; by default on noisy data.
 
     Returns
     -------
@@ -1006,13 +1018,18 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     # most SHOOTING_PARTS_MAX of them (the parts contend for the GIL)
     threads = min(torch.get_num_threads(), SHOOTING_PARTS_MAX)
 
+    substeps_used: set = set()
+
     def make_fitter(window, max_windows, substeps=2):
+        if cfg.refine_max_step > 0:  # coarse samples: RK4's own error would bias the coefficients
+            substeps = max(substeps, math.ceil(train.dt / cfg.refine_max_step - 1e-9))
+        substeps_used.add(substeps)
         return TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=window,
                                 substeps=substeps, weights=weights, max_windows=max_windows, threads=threads)
 
     errors = {} if errors is None else errors
-    if cfg.refine_growing_windows and _noisy(train):
-        return _refine_growing(model, train, smallsignal, cfg, make_fitter, progress)
+    if cfg.refine_growing_windows and (_noisy(train) if growing is None else growing):
+        return _refine_growing(model, train, smallsignal, cfg, make_fitter, progress, substeps_used)
     fitter = make_fitter(cfg.refine_window, cfg.refine_max_windows)
     if start_error is None:
         start_error = training_error(model, train if scoring is None else scoring)
@@ -1045,7 +1062,7 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         return {}
     meta = dict(model.metadata)
     meta["refinement"] = {"cost": result.cost, "nfev": result.nfev, "seconds": result.seconds,
-                          "abandoned": result.abandoned}
+                          "abandoned": result.abandoned, "rk4_substeps": sorted(substeps_used)}
     out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients,
                                     {**meta, **_with_covariance(result)})}
     if result.abandoned:
@@ -1067,8 +1084,9 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
 
 
 def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig,
-                    make_fitter, progress=None) -> dict:
-    """The noisy-data refinement: stages of growing windows over all the data, then the model pruned
+                    make_fitter, progress=None, substeps_used: set | None = None) -> dict:
+    """The noisy-data refinement (and clean data's where no candidate reproduces them,
+    ``IdentConfig.clean_growing_error``): stages of growing windows over all the data, then the model pruned
     at the first of ``cfg.refine_prune_budgets`` re-fitted in stages of its own, and pruned and
     re-fitted again for ``cfg.refine_prune_rounds`` rounds in all (one candidate per round).
 
@@ -1143,7 +1161,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     schedule = {"windows": [w for w, _ in stages], "evaluations": [n for _, n in stages],
                 "pruned_between": pruned_between}
     meta["refinement"] = {"cost": result.cost, "nfev": used[0], "seconds": time.monotonic() - started,
-                          "abandoned": False, "growing_windows": schedule}
+                          "abandoned": False, "growing_windows": schedule, "rk4_substeps": sorted(substeps_used or ())}
     out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients,
                                     {**meta, **_with_covariance(result)})}
     if not cfg.refine_prune_budgets or result.hessian is None:
