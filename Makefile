@@ -45,7 +45,7 @@ bench-plants: env
 	$(PY) bench/plants_bench.py
 
 # PISML on the protocol with one thing changed (sample rate, voltages, phase jumps, small-signal point,
-# record count/length; ~17 min on 2 cores at stop 37): bench/scenarios_results.json, bench/SCENARIOS_RESULTS.md
+# record count/length; ~20 min on 2 cores at stop 38): bench/scenarios_results.json, bench/SCENARIOS_RESULTS.md
 bench-scenarios: env
 	$(PY) bench/scenarios_bench.py
 
