@@ -300,7 +300,11 @@ def test_pisml_pipeline_stages_and_model(train, small, test_set):
 def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_from_the_merged_model(train, small):
     # with clean_growing_error 0 no candidate is good enough: the merged model is refined as noisy
     # records are (coarse samples leave the equation-error starts wrong, IdentConfig.clean_growing_error)
-    est = make_estimator("pisml", IdentConfig.from_mapping({**FAST, "clean_growing_error": 0.0})).fit(train, small)
+    updates = []
+    est = make_estimator("pisml", IdentConfig.from_mapping({**FAST, "clean_growing_error": 0.0})).fit(
+        train, small, callback=updates.append)
+    progress = [u.progress for u in updates]
+    assert progress == sorted(progress) and progress[-1] == 1.0
     refined = est.candidates_["refined from distilled"]
     assert refined.metadata["refinement"]["start"] == "distilled"
     assert refined.metadata["refinement"]["growing_windows"]["windows"] == list(IdentConfig().refine_growing_windows)

@@ -71,6 +71,7 @@ class _Estimator:
     def _emit(self, stage, progress, epoch=0, losses=None, model=None):
         if self._should_stop():
             raise IdentificationCancelled(f"{self.method}: cancelled during {stage}")
+        self._progress = float(progress)
         self._callback(StageUpdate(stage, float(progress), int(epoch), dict(losses or {}), model))
 
     def _finish(self, model, explicit):
@@ -581,8 +582,9 @@ class PISML(_Estimator):
                 # every term kept, is refined as noisy data are (IdentConfig.clean_growing_error)
                 explicit.metadata["refinement_growing_fallback"] = {"best_error_pct": min(scores.values())}
                 starts.append("distilled")
+                done = self._progress
                 add(len(starts) - 1, *refine_from("distilled", lambda fraction, losses: self._emit(
-                    "refinement", 0.84 + 0.14 * fraction, losses=losses), growing=True))
+                    "refinement", done + (0.98 - done) * fraction, losses=losses), growing=True))
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the records when run freely
         # from their rest states or first samples (refinement that made things worse is dropped), or
