@@ -68,6 +68,13 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"refine_starts": "first"})
     with pytest.raises(ConfigError, match="refine_stage_prune_budget must be >= 0"):
         IdentConfig.from_mapping({"refine_stage_prune_budget": -0.1})
+    with pytest.raises(ConfigError, match="refine_max_step must be >= 0"):
+        IdentConfig.from_mapping({"refine_max_step": -1e-5})
+    with pytest.raises(ConfigError, match="refine_max_step must be 0 .off. or at least 1e-7 s, got 1e-09"):
+        IdentConfig.from_mapping({"refine_max_step": 1e-9})
+    with pytest.raises(ConfigError, match="clean_growing_error must be >= 0"):
+        IdentConfig.from_mapping({"clean_growing_error": -0.1})
+    assert IdentConfig.from_mapping({"clean_growing_error": "inf"}).clean_growing_error == math.inf
     cfg = IdentConfig.from_mapping({"epochs": "7", "hidden": "32,16", "refine": "false",
                                     "refine_prune_budgets": "0.002,0.02"})
     assert cfg.epochs == 7 and cfg.hidden == (32, 16) and cfg.refine is False
@@ -311,10 +318,20 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     assert "pruned +0.1 % from distilled" in est.candidates_
     selection = est.explicit_model_.metadata["selection"]
     fallback = est.explicit_model_.metadata["refinement_growing_fallback"]
-    before = [v for k, v in selection["training_error_pct"].items() if not k.endswith("from distilled")]
-    assert fallback["best_error_pct"] == pytest.approx(min(before))
+    # what the selection would have taken without it, and the family it added
+    assert not fallback["selected_before"].endswith("from distilled")
+    assert fallback["error_pct"] == selection["training_error_pct"][fallback["selected_before"]]
+    assert fallback["added"] == sorted(name for name in est.candidates_ if name.endswith("from distilled"))
+    assert est.metrics_["clean_growing_fallback"] == 1.0
     # the family competes: scored with the others
     assert {"refined from distilled", "pruned +0.1 % from distilled"} <= set(selection["training_error_pct"])
+    # noisy records are refined in growing windows anyway: no fallback on top
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    noisy = make_estimator("pisml", IdentConfig.from_mapping({**FAST, "clean_growing_error": 0.0})).fit(
+        add_measurement_noise(train, 40.0, seed=1), add_measurement_noise(small, 40.0, seed=2))
+    assert "refinement_growing_fallback" not in noisy.explicit_model_.metadata
+    assert not any(name.endswith("from distilled") for name in noisy.candidates_)
 
 
 def test_pure_node_has_no_explicit_model_but_a_spectrum(train):
@@ -661,19 +678,31 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     assert "growing_windows" not in one_stage["refined"].metadata["refinement"]
 
 
-def test_refinement_keeps_its_rk4_step_below_refine_max_step():
+def test_refinement_keeps_its_rk4_step_below_refine_max_step(monkeypatch):
     # coarse samples get more RK4 substeps (RK4's own error would bias the coefficients); fine ones
     # keep the configured two
     from pisml_ros.ident.estimators import refine_explicit
     from pisml_ros.model import ExplicitModel
 
+    from pisml_ros.ident import trajfit
+
     train, truth = _oscillator_data(4, lambda rng: [(int(rng.integers(50, 350)), rng.uniform(0.5, 1.5))], seed=3)
     model = ExplicitModel(("xa", "xb"), ("v",), ["xa", "xb", "v"], truth * 1.05)
     one_stage = {"refine_growing_windows": "", "refine_prune_budgets": "", "refine_window": 50, "refine_max_nfev": 3}
+    built = []  # the substeps the fitters were built with
+
+    class Recording(trajfit.TrajectoryFitter):
+        def __init__(self, *args, **kwargs):
+            built.append(kwargs["substeps"])
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(trajfit, "TrajectoryFitter", Recording)
     substeps = {}
     for max_step in (0.0, 5e-5, 2.5e-5, 1.2e-5):
+        built.clear()
         out = refine_explicit(model, train, None, IdentConfig.from_mapping({**one_stage, "refine_max_step": max_step}))
         substeps[max_step] = out["refined"].metadata["refinement"]["rk4_substeps"]
+        assert set(built) == set(substeps[max_step])
         np.testing.assert_allclose(out["refined"].coefficients, truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
     assert substeps == {0.0: [2], 5e-5: [2], 2.5e-5: [4], 1.2e-5: [9]}  # dt 1e-4
 

@@ -10,7 +10,7 @@ The covariance counts the noise alone, not the model's own error (terms it lacks
 have): measured (stop 35, `make bench`, the ten 40 dB recordings' chosen models) the plant's
 largest real part lay within two of these standard deviations of the model's at 47 of 68 grid
 points, not the 95 % two standard deviations promise (README, "Identification benchmark"). In
-ug 0.8-1.2 those models' slowest mode sits near the refinement's stability prior (-0.5 1/s at the
+ug 0.8-1.1 those models' slowest mode sits near the refinement's stability prior (-0.5 1/s at the
 records' rest points: median -0.43 to -0.60 1/s at ug 0.8-1.1), not at the plant's (-0.73, -1.55,
 -0.55): 40 ms records barely see it (stop 38).
 """

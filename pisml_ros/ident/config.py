@@ -102,15 +102,17 @@ class IdentConfig:
     # pass faster: the same models, recordings 0-4 in 52-61 s, median 53.8 s, instead of 89-130 s;
     # `--set refine_growing_evaluations=15,10,10` gives the old models in about two thirds of the time)
     refine_growing_evaluations: tuple = (30, 20, 20)
-    # RK4 steps per sample in the growing-window stages (the polish keeps 2). Measured at 1 (40 dB,
+    # RK4 steps per sample in the growing-window stages (the polish uses 2), either raised to keep
+    # refine_max_step (so 1 needs refine_max_step 0 at 10 kHz since stop 38). Measured at 1 (40 dB,
     # recordings 0 / 1 / 2): 53 / 48 / 48 s instead of ~70 s, but recording 0's pruned model was
     # lost and an unstable refined one chosen (1.02 / 1.62 %), 1 and 2 0.24 / 1.17 %, 0.37 / 2.04 %
     refine_growing_substeps: int = 2
-    # on clean data: where no candidate reproduces the training records run freely within this error
-    # (%, the free-run training error) after the one-stage refinement, the merged model is refined in
-    # growing windows too (as on noisy data) and its family competes. Clean data within the clean
-    # targets score ~0.004-0.03 % (protocol, 10 and 20 kHz); at 5 kHz the sparse re-fits miss true
-    # terms (equation error on 3 samples per LCL period) and the best candidate scored 0.38 %
+    # on clean data: where the model the selection would take after the one-stage refinement does not
+    # reproduce the training and small-signal records run freely within this error (%), the merged
+    # model is refined in growing windows and pruned too (as on noisy data), and that family competes
+    # (needs refine_growing_windows; inf: off). Clean data within the clean targets score
+    # ~0.004-0.03 % (protocol, 10 and 20 kHz); at 5 kHz the sparse re-fits miss true terms (equation
+    # error on 3 samples per LCL period) and the chosen candidate scored 0.38 %
     clean_growing_error: float = 0.1
     # longest RK4 step (s) of the refinement: with coarser samples the substeps per sample rise to keep
     # it (at the protocol's 10 kHz the two substeps give 5e-5 s already); 0: the substeps as set.
@@ -410,6 +412,9 @@ class IdentConfig:
         if not self.refine_prune_degree_preference >= 1:  # also NaN
             raise ConfigError(f"identification config: refine_prune_degree_preference must be >= 1, got "
                               f"{self.refine_prune_degree_preference}")
+        if 0 < self.refine_max_step < 1e-7:
+            raise ConfigError(f"identification config: refine_max_step must be 0 (off) or at least 1e-7 s, got "
+                              f"{self.refine_max_step}")
         if not 0 <= self.dropout < 1:
             raise ConfigError(f"identification config: dropout must be in [0, 1), got {self.dropout}")
         if self.integrator_terms not in ("linear", "any"):

@@ -71,7 +71,6 @@ class _Estimator:
     def _emit(self, stage, progress, epoch=0, losses=None, model=None):
         if self._should_stop():
             raise IdentificationCancelled(f"{self.method}: cancelled during {stage}")
-        self._progress = float(progress)
         self._callback(StageUpdate(stage, float(progress), int(epoch), dict(losses or {}), model))
 
     def _finish(self, model, explicit):
@@ -558,9 +557,12 @@ class PISML(_Estimator):
             # gradients are thread-safe (TermSet.thread_safe_gradient): else the two starts side by
             # side are quicker
             shared = term_set(candidates[starts[0]].terms, signals).thread_safe_gradient()
+            noisy = _noisy(train)
+            # on clean data the second half of the refinement's progress is kept for the fallback below
+            share = 0.28 if noisy or not cfg.refine_growing_windows else 0.14
             if cfg.refine_starts == "both" or len(starts) == 1 or not shared:
                 outcomes = _side_by_side(refine_from, starts, lambda fraction, losses: self._emit(
-                    "refinement", 0.7 + 0.28 * fraction, losses=losses))
+                    "refinement", 0.7 + share * fraction, losses=losses))
                 for k, outcome in enumerate(outcomes):
                     add(k, *outcome)
                 self.metrics_["refinement_threads"] = float(_threads_for(len(starts)))
@@ -575,16 +577,8 @@ class PISML(_Estimator):
                     add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
                         "refinement", 0.84 + 0.14 * fraction, losses=losses)))
                 self.metrics_["refinement_starts_run"] = float(sum(name.startswith("refined") for name in candidates))
-            if not _noisy(train) and cfg.refine_growing_windows and "distilled" in candidates \
-                    and min(scores.values()) > cfg.clean_growing_error:
-                # clean data that no candidate reproduces: the equation-error fits behind the sparse
-                # starts went wrong (coarse samples: quadrature and RK4 errors), so the merged model,
-                # every term kept, is refined as noisy data are (IdentConfig.clean_growing_error)
-                explicit.metadata["refinement_growing_fallback"] = {"best_error_pct": min(scores.values())}
-                starts.append("distilled")
-                done = self._progress
-                add(len(starts) - 1, *refine_from("distilled", lambda fraction, losses: self._emit(
-                    "refinement", done + (0.98 - done) * fraction, losses=losses), growing=True))
+            if not noisy and cfg.refine_growing_windows and "distilled" in candidates:
+                self._clean_growing_fallback(explicit, candidates, scores, verdicts, hold, starts, refine_from, add)
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the records when run freely
         # from their rest states or first samples (refinement that made things worse is dropped), or
@@ -604,6 +598,28 @@ class PISML(_Estimator):
         self.metrics_["hybrid_parameters"] = float(hybrid.n_parameters)
         self._emit("explicit", 1.0, model=explicit)
         return self._finish(explicit, explicit)
+
+
+    def _clean_growing_fallback(self, explicit, candidates, scores, verdicts, hold, starts, refine_from, add):
+        """On clean data, where the model the selection would take does not reproduce the records
+        within ``clean_growing_error``: the equation-error fits behind the sparse starts went wrong
+        (coarse samples: quadrature and RK4 errors), so the merged model is refined in growing
+        windows and pruned as noisy data are, and that family (``… from distilled``) joins the
+        candidates. Recorded in the metadata (``refinement_growing_fallback``) and the metrics."""
+        cfg = self.config
+        chosen = _selected(explicit, candidates, scores, tolerance=cfg.selection_tolerance, verdicts=verdicts,
+                           unstable_rate=cfg.selection_unstable_rate, hold=hold,
+                           equilibrium_grid=cfg.selection_equilibrium_grid).metadata["selection"]["chosen"]
+        if not scores[chosen] > cfg.clean_growing_error:
+            return
+        self._emit("refinement", 0.84)
+        before = set(candidates)
+        starts.append("distilled")
+        add(len(starts) - 1, *refine_from("distilled", lambda fraction, losses: self._emit(
+            "refinement", 0.84 + 0.14 * fraction, losses=losses), growing=True))
+        explicit.metadata["refinement_growing_fallback"] = {
+            "selected_before": chosen, "error_pct": scores[chosen], "added": sorted(set(candidates) - before)}
+        self.metrics_["clean_growing_fallback"] = 1.0
 
 
 def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
@@ -797,7 +813,8 @@ def _refinement_starts(candidates: dict, scores: dict, points: list, verdicts: d
     benchmark, the demo recording): from the merged model 0.32 / 0.51, 0.29 / 0.49, 0.47 / 2.13,
     failed (training error 3.0 %, W ~1500); from the noise-compensated backbone (its LCL part is
     the better one) 0.34 / 0.35, 1.20 / 3.77, 0.53 / 0.76, 0.24 / 0.48. Each start's refinement
-    is a family of candidates (``"refined"``, ``"pruned +B %"``; ``… from <start>`` for the second)
+    is a family of candidates (``"refined"``, ``"pruned +B %"``; ``… from <start>`` for the second,
+    and for the clean-data fallback's ``… from distilled``, ``PISML._clean_growing_fallback``)
     and the selection takes the one that reproduces the training and small-signal records best.
     """
     verdicts = {} if verdicts is None else verdicts
@@ -989,8 +1006,10 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     Each budget ``b`` of ``cfg.refine_prune_budgets`` gives the sparsest model whose predicted
     refinement cost is at most (1 + b)× the refined one's (:func:`~.trajfit.backward_elimination`;
     no further integration). The caller selects among them on free-run training error. On noisy
-    data (and with ``cfg.refine_growing_windows`` set) the refinement runs in stages of growing
-    windows instead, and the first budget's pruned model is re-fitted (:func:`_refine_growing`).
+    data, or with ``growing`` (and ``cfg.refine_growing_windows`` set either way), the refinement
+    runs in stages of growing windows instead, and the first budget's pruned model is re-fitted
+    (:func:`_refine_growing`). RK4 runs with at least ``dt / cfg.refine_max_step`` substeps per
+    sample (the metadata's ``rk4_substeps``).
 
     Parameters
     ----------
@@ -1001,7 +1020,8 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     scoring : Dataset, optional
         The records :func:`training_error` runs on (``start_error`` is on them too); ``train`` if not given.
     growing : bool, optional
-        Whether to refine in stages of growing windows; by default on noisy data.
+        Whether to refine in stages of growing windows; by default on noisy data. Without
+        ``cfg.refine_growing_windows`` the one-stage refinement runs whatever this says.
 
     Returns
     -------
@@ -1198,7 +1218,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                    "round": round_, "predicted_cost_rise": rise / max(base.cost, 1e-300),
                    "polish_windows": [w for w, _ in schedule],
                    "polish_cost": None if polished is None else polished.cost,
-                   "polish_evaluations": used[0] - polish_used, "polish_seconds": time.monotonic() - polish_started}
+                   "polish_evaluations": used[0] - polish_used, "polish_seconds": time.monotonic() - polish_started,
+                   "rk4_substeps": sorted(substeps_used or ())}
         # named by the nominal budget: the same names whatever the records' length
         name = f"pruned +{100 * cfg.refine_prune_budgets[0]:g} %" + ("" if round_ == 1 else f" x{round_}")
         out[name] = ExplicitModel(model.state_names, model.input_names, model.terms,
