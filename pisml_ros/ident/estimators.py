@@ -599,7 +599,6 @@ class PISML(_Estimator):
         self._emit("explicit", 1.0, model=explicit)
         return self._finish(explicit, explicit)
 
-
     def _clean_growing_fallback(self, explicit, candidates, scores, verdicts, hold, starts, refine_from, add):
         """On clean data, where the model the selection would take does not reproduce the records
         within ``clean_growing_error``: the equation-error fits behind the sparse starts went wrong
