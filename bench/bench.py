@@ -383,6 +383,18 @@ def vector_text(row: dict) -> str:
     return f"{fmt(row.get('iod_vector'))} / {fmt(row.get('ood_vector'))}"
 
 
+# the columns a fit's row has in the scenarios' and the plants' tables, after their own leading ones
+FIT_COLUMNS = ["IOD %", "OOD %", "IOD / OOD vector %", "W (ug 0.8)", "coefficients", "spurious", "no equilibrium",
+               "ΔQ op.", "s"]
+
+
+def fit_cells(row: dict) -> str:
+    """The FIT_COLUMNS cells of a fit's row, '|'-separated (no outer bars)."""
+    return (f"{fmt(row.get('iod'))} | {fmt(row.get('ood'))} | {vector_text(row)} | "
+            f"{fmt(row.get('wasserstein_ug08'))} | {row.get('n_parameters', '—')} | {spurious_text(row)} | "
+            f"{missing_text(row)} | {fmt(row.get('op_dq'), 2)} | {row['seconds']:.0f}")
+
+
 def compression(row: dict) -> float | None:
     """The hybrid model's parameters over the explicit model's nonzero coefficients (the issue's
     distillation target: ≥ 250×); None where the run has no hybrid."""

@@ -77,7 +77,7 @@ def main(argv=None) -> int:
 
 def write(args, rows, started, final=False):
     """The results JSON after every fit (a crash loses nothing) and the markdown table."""
-    from bench import fmt, machine, missing_text, spurious_text, vector_text
+    from bench import FIT_COLUMNS, fit_cells, machine
 
     result = {"complete": final, "command": "python bench/plants_bench.py " + " ".join(sys.argv[1:]),
               "date": time.strftime("%Y-%m-%d"),
@@ -92,14 +92,10 @@ def write(args, rows, started, final=False):
              "Spurious: an unstable model mode where the plant is stable (ug 0.2-1.1); no equilibrium: "
              "grid points where the analysis finds none (the plant has one at each). IOD / OOD vector: the four "
              "scored states taken together (RESULTS.md).", "",
-             "| plant | seed | data | method | IOD % | OOD % | IOD / OOD vector % | W (ug 0.8) | coefficients | spurious | "
-             "no equilibrium | ΔQ op. | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| " + " | ".join(["plant", "seed", "data", "method", *FIT_COLUMNS]) + " |",
+             "|" + "---|" * (4 + len(FIT_COLUMNS))]
     for r in rows:
-        lines.append(f"| {r['plant']} | {r['seed']} | {r['noise']} | {r['method']} | {fmt(r.get('iod'))} | {fmt(r.get('ood'))} | "
-                     f"{vector_text(r)} | {fmt(r.get('wasserstein_ug08'))} | {r.get('n_parameters', '—')} | {spurious_text(r)} | "
-                     f"{missing_text(r)} | {fmt(r.get('op_dq'), 2)} | "
-                     f"{r['seconds']:.0f} |")
+        lines.append(f"| {r['plant']} | {r['seed']} | {r['noise']} | {r['method']} | {fit_cells(r)} |")
     lines += ["", "PISML at 40 dB, recordings within both accuracy targets (IOD ≤ 0.5 %, OOD ≤ 1 %), with no "
               "spurious unstable mode, and with an equilibrium at every grid point:", ""]
     for name in dict.fromkeys(r["plant"] for r in rows):

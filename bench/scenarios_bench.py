@@ -88,7 +88,7 @@ def main(argv=None) -> int:
 
 def write(args, rows, started, final=False):
     """The results JSON after every fit (a crash loses nothing) and the markdown table."""
-    from bench import fmt, machine, missing_text, spurious_text, vector_text
+    from bench import FIT_COLUMNS, fit_cells, machine
 
     result = {"complete": final, "command": "python bench/scenarios_bench.py " + " ".join(sys.argv[1:]),
               "date": time.strftime("%Y-%m-%d"),
@@ -108,15 +108,11 @@ def write(args, rows, started, final=False):
              "Spurious: an unstable model mode where the plant is stable (ug 0.2-1.1; '(in data)': inside the "
              "grid voltages of the records); no equilibrium: grid points where the analysis finds none. "
              "IOD / OOD vector: the four scored states taken together (RESULTS.md).", "",
-             "| scenario | seed | data | IOD % | OOD % | IOD / OOD vector % | W (ug 0.8) | coefficients | spurious | "
-             "no equilibrium | ΔQ op. | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| " + " | ".join(["scenario", "seed", "data", *FIT_COLUMNS]) + " |",
+             "|" + "---|" * (3 + len(FIT_COLUMNS))]
     for r in rows:
         lines.append(f"| {r['scenario']} | {r['seed']} | {r['noise']}{' (kept)' if r.get('kept') else ''} | "
-                     f"{fmt(r.get('iod'))} | {fmt(r.get('ood'))} | {vector_text(r)} | "
-                     f"{fmt(r.get('wasserstein_ug08'))} | {r.get('n_parameters', '—')} | {spurious_text(r)} | "
-                     f"{missing_text(r)} | {fmt(r.get('op_dq'), 2)} | "
-                     f"{r['seconds']:.0f} |")
+                     f"{fit_cells(r)} |")
     lines += ["", "Within the issue's targets (clean: IOD ≤ 0.05 %, OOD ≤ 0.1 %; noisy: IOD ≤ 0.5 %, OOD ≤ 1 %) "
               "and with no spurious unstable mode:", ""]
     for noise in dict.fromkeys(r["noise"] for r in rows):
