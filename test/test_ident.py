@@ -859,6 +859,27 @@ def test_selection_excuses_a_fold_just_before_an_edge_rest_point_that_the_model_
     assert none["chosen"] == "re-fit +300 %" and none["inconsistent_rest_points"]["re-fit +300 %"] == 3
 
 
+def test_a_growing_mode_where_the_small_signal_records_sat_is_inconsistent_at_any_rate():
+    from pisml_ros.ident.estimators import _inconsistent_points
+
+    # x' = 1 - x; y' = r (y - 1): the equilibrium (1, 1) has the modes -1 and r at every input
+    terms = ["1", "x", "y"]
+
+    def model(rate):
+        return ExplicitModel(("x", "y"), ("u",), terms, np.column_stack([[1.0, -1, 0], [-rate, 0, rate]]), {})
+
+    candidates = {"slow growth": model(0.3), "decay": model(-0.5), "fast growth": model(3.0)}
+    training = [{"inputs": [0.8], "state": [1.0, 1.0]}, {"inputs": [1.2], "state": [1.0, 1.0]}]
+    small = training + [{"inputs": [1.0], "state": [1.0, 1.0], "smallsignal": True}]
+    count = {name: (_inconsistent_points(name, candidates, training, {}, 1.0),
+                    _inconsistent_points(name, candidates, small, {}, 1.0)) for name in candidates}
+    # where a training record sat, growth slower than the tolerated rate passes (the plant itself
+    # grows at +0.25 1/s at ug 1.2); where the small-signal records sat, perturbations that return
+    # to their equilibrium, it does not (stop 39: a 40 dB fit unstable at +0.15-0.25 1/s at every
+    # rest point, spuriously unstable over ug 0.2-1.1)
+    assert count == {"slow growth": (0, 1), "decay": (0, 0), "fast growth": (2, 3)}
+
+
 def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
     from pisml_ros.ident.estimators import _grid_inputs, _selected
 
