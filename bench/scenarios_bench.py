@@ -10,7 +10,7 @@ records start from, the size of the phase jumps, where the small-signal steps si
 length of the records) and keeps the rest; the test records are the protocol's (at the scenario's
 sample rate) and the errors are against the default plant's clean truth, as in bench/bench.py.
 Seed k gives the same event times, sag depths and noise as bench.py's recording k. Writes
-bench/scenarios_results.json and bench/SCENARIOS_RESULTS.md (~17 min on 2 cores with the defaults, stop 37).
+bench/scenarios_results.json and bench/SCENARIOS_RESULTS.md (~17-20 min on 2 cores with the defaults, stops 37-38).
 """
 from __future__ import annotations
 

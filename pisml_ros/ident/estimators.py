@@ -537,9 +537,7 @@ class PISML(_Estimator):
         verdicts: dict = {}  # stability at the records' rest points, by candidate (selection, refinement start)
         if cfg.refine:
             # refinement takes most of the time: the best explicit model so far goes out first
-            preliminary = _selected(explicit, candidates, scores, verdicts=verdicts,
-                                    unstable_rate=cfg.selection_unstable_rate, hold=hold,
-                                    equilibrium_grid=cfg.selection_equilibrium_grid)
+            preliminary = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold, tolerance=0.0)
             preliminary.metadata["stage"] = "explicit (before refinement)"
             self._emit("explicit (before refinement)", 0.7, model=preliminary)
             started = time.monotonic()
@@ -594,9 +592,7 @@ class PISML(_Estimator):
         unscored = {name: model for name, model in candidates.items() if name not in scores}
         scores.update(training_errors(unscored, scoring))
         self.candidates_ = candidates
-        explicit = _selected(explicit, candidates, scores, tolerance=cfg.selection_tolerance, verdicts=verdicts,
-                             unstable_rate=cfg.selection_unstable_rate, hold=hold,
-                             equilibrium_grid=cfg.selection_equilibrium_grid)
+        explicit = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold)
         explicit.metadata["selection"]["scored_on"] = ("training and small-signal records" if scoring is not train
                                                        else "training records")
         self.metrics_["training_error_pct"] = scores[explicit.metadata["selection"]["chosen"]]
@@ -614,9 +610,8 @@ class PISML(_Estimator):
         windows and pruned as noisy data are, and that family (``… from distilled``) joins the
         candidates. Recorded in the metadata (``refinement_growing_fallback``) and the metrics."""
         cfg = self.config
-        chosen = _selected(explicit, candidates, scores, tolerance=cfg.selection_tolerance, verdicts=verdicts,
-                           unstable_rate=cfg.selection_unstable_rate, hold=hold,
-                           equilibrium_grid=cfg.selection_equilibrium_grid).metadata["selection"]["chosen"]
+        selection = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold).metadata["selection"]
+        chosen = selection["chosen"]
         if not scores[chosen] > cfg.clean_growing_error:
             return
         self._emit("refinement", 0.84)
@@ -629,15 +624,23 @@ class PISML(_Estimator):
         self.metrics_["clean_growing_fallback"] = 1.0
 
 
+def _configured_selection(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
+                          verdicts: dict, hold: float, tolerance: float | None = None) -> ExplicitModel:
+    """:func:`_selected` with the selection settings of ``cfg`` (``tolerance``: its
+    ``selection_tolerance`` unless given; the preliminary model before refinement takes 0)."""
+    return _selected(template, candidates, scores,
+                     tolerance=cfg.selection_tolerance if tolerance is None else tolerance, verdicts=verdicts,
+                     unstable_rate=cfg.selection_unstable_rate, hold=hold,
+                     equilibrium_grid=cfg.selection_equilibrium_grid)
+
+
 def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
                          verdicts: dict, hold: float = np.inf) -> bool:
     """Whether the first refinement start's family already gives the explicit model: the selection
     over the candidates so far takes one of its models, and that model is consistent with every
     operating point where the records sat at rest (an equilibrium there, no mode growing faster than
-    ``cfg.selection_unstable_rate``)."""
-    chosen = _selected(template, candidates, scores, tolerance=cfg.selection_tolerance, verdicts=verdicts,
-                       unstable_rate=cfg.selection_unstable_rate, hold=hold,
-                       equilibrium_grid=cfg.selection_equilibrium_grid).metadata["selection"]
+    ``cfg.selection_unstable_rate``, none growing at all where the small-signal records sat)."""
+    chosen = _configured_selection(template, candidates, scores, cfg, verdicts, hold).metadata["selection"]
     name = chosen["chosen"]
     return _refinement_family(name) == "" and chosen["inconsistent_rest_points"][name] == 0
 
