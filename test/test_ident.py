@@ -859,16 +859,19 @@ def test_selection_excuses_a_fold_just_before_an_edge_rest_point_that_the_model_
     assert none["chosen"] == "re-fit +300 %" and none["inconsistent_rest_points"]["re-fit +300 %"] == 3
 
 
-def test_a_growing_mode_where_the_small_signal_records_sat_is_inconsistent_at_any_rate():
+def test_a_mode_that_does_not_decay_where_the_small_signal_records_sat_is_inconsistent():
     from pisml_ros.ident.estimators import _inconsistent_points
 
-    # x' = 1 - x; y' = r (y - 1): the equilibrium (1, 1) has the modes -1 and r at every input
-    terms = ["1", "x", "y"]
+    # x' = 1 - x; y' = r (y - 1): the equilibrium (1, 1) has the modes -1 and r at every input;
+    # y' = -(y - 1)**3 has an isolated equilibrium there with the mode 0
+    terms = ["1", "x", "y", "y**2", "y**3"]
 
-    def model(rate):
-        return ExplicitModel(("x", "y"), ("u",), terms, np.column_stack([[1.0, -1, 0], [-rate, 0, rate]]), {})
+    def model(column_y):
+        return ExplicitModel(("x", "y"), ("u",), terms, np.column_stack([[1.0, -1, 0, 0, 0], column_y]), {})
 
-    candidates = {"slow growth": model(0.3), "decay": model(-0.5), "fast growth": model(3.0)}
+    candidates = {name: model([-rate, 0, rate, 0, 0])
+                  for name, rate in (("slow growth", 0.3), ("decay", -0.5), ("fast growth", 3.0))}
+    candidates["no decay"] = model([1.0, 0, -3, 3, -1])
     training = [{"inputs": [0.8], "state": [1.0, 1.0]}, {"inputs": [1.2], "state": [1.0, 1.0]}]
     small = training + [{"inputs": [1.0], "state": [1.0, 1.0], "smallsignal": True}]
     count = {name: (_inconsistent_points(name, candidates, training, {}, 1.0),
@@ -877,7 +880,10 @@ def test_a_growing_mode_where_the_small_signal_records_sat_is_inconsistent_at_an
     # grows at +0.25 1/s at ug 1.2); where the small-signal records sat, perturbations that return
     # to their equilibrium, it does not (stop 39: a 40 dB fit unstable at +0.15-0.25 1/s at every
     # rest point, spuriously unstable over ug 0.2-1.1)
-    assert count == {"slow growth": (0, 1), "decay": (0, 0), "fast growth": (2, 3)}
+    # a zero mode does not return either (as the verdicts read it: stable means decaying)
+    assert count == {"slow growth": (0, 1), "decay": (0, 0), "fast growth": (2, 3), "no decay": (0, 1)}
+    # an infinite rate leaves growth unchecked, there too
+    assert [_inconsistent_points(name, candidates, small, {}, np.inf) for name in candidates] == [0, 0, 0, 0]
 
 
 def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
