@@ -321,8 +321,8 @@ class IdentConfig:
     # run freely from the rest state, moves more than 10 % within 1 / this seconds (a fold just
     # before the point is excused where it is passed as slowly; estimators._inconsistent_points);
     # the candidates with the fewest such points compete (the plant's own boundary mode: +0.25 1/s
-    # at ug 1.2). Where the small-signal records sat at rest any growth counts (stop 39): they are
-    # perturbations about an equilibrium they return to
+    # at ug 1.2). Where the small-signal records sat at rest a mode that does not decay counts (stop
+    # 39): they are perturbations about an equilibrium they return to
     selection_unstable_rate: float = 1.0
     # grid voltages (the grid-magnitude role; grid phase 0) where a power engineer will ask for the
     # model's operating point: where the selected candidate has no equilibrium at some of them (as

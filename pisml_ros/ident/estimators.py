@@ -138,7 +138,7 @@ def _inconsistent_points(name: str, candidates: dict, points: list, cache: dict,
     the demo's recording with ``refine_centred_couplings`` on: the chosen model had no equilibrium at
     ug 0.8-0.82 and drifted slowly there, so the excuse passed it; every other candidate of that
     fit was inconsistent at more points, so this rule alone would not have changed the choice).
-    For the same reason no growth at all is tolerated there: ``unstable_rate`` leaves room for a
+    For the same reason every mode must decay there: ``unstable_rate`` leaves room for a
     plant that sits at a weakly unstable equilibrium at the edge of the training records (+0.25 1/s
     at ug 1.2), not for one perturbed about it (stop 39, the scenarios benchmark's 40 dB recording
     with phase jumps of 10-20°: every candidate of the first refinement start was unstable at the
@@ -320,8 +320,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     verdicts = {} if verdicts is None else verdicts
     # a model with no equilibrium near a point where the records sat at rest cannot be analysed
     # there (nor be right there), and one whose equilibrium there has a fast-growing mode (at the
-    # small-signal point: any growth) contradicts the record that sat still: the candidates with the
-    # fewest such points compete
+    # small-signal point: one that does not decay) contradicts the record that sat still: the
+    # candidates with the fewest such points compete
     models = [name for name in scores if scores[name] < hold]
     finite = models or [name for name in scores if np.isfinite(scores[name])] or list(scores)
     misfits = {name: _inconsistent_points(name, candidates, points, verdicts, unstable_rate) for name in finite}
@@ -649,7 +649,7 @@ def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict
     """Whether the first refinement start's family already gives the explicit model: the selection
     over the candidates so far takes one of its models, and that model is consistent with every
     operating point where the records sat at rest (an equilibrium there, no mode growing faster than
-    ``cfg.selection_unstable_rate``, none growing at all where the small-signal records sat)."""
+    ``cfg.selection_unstable_rate``, every mode decaying where the small-signal records sat)."""
     chosen = _configured_selection(template, candidates, scores, cfg, verdicts, hold).metadata["selection"]
     name = chosen["chosen"]
     return _refinement_family(name) == "" and chosen["inconsistent_rest_points"][name] == 0
