@@ -249,8 +249,24 @@ def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, lab
         row["hybrid_parameters"] = int(est.hybrid_.n_parameters)
         row["sweep_hybrid"] = [finite(e) for e in sweep_errors(est.hybrid_, sweep)]
         row["sweep_explicit"] = [finite(e) for e in sweep_errors(est.model_, sweep)]
+    row.update(selection_record(est.model_))
     row["_spectrum_ug08"] = None if model_spectra[0.8] is None else [[z.real, z.imag] for z in model_spectra[0.8]]
     return row, est
+
+
+def selection_record(model):
+    """What the engine's selection saw (``metadata["selection"]``): the chosen candidate, and each
+    candidate's free-run training error (%; None: it ran away), nonzero coefficients, rest points
+    it is inconsistent with, and grid voltages without an equilibrium where those were counted.
+    Stored so that a change of the selection rule can be replayed on a benchmark's candidates."""
+    selection = model.metadata.get("selection")
+    if not selection:
+        return {}
+    return {"selection": {"chosen": selection["chosen"],
+                          "training_error_pct": {k: finite(v) for k, v in selection["training_error_pct"].items()},
+                          "nonzero": dict(selection["nonzero"]),
+                          "inconsistent_rest_points": dict(selection["inconsistent_rest_points"]),
+                          "missing_equilibria": dict(selection.get("missing_equilibria") or {})}}
 
 
 def fmt(v, digits=3):

@@ -1022,6 +1022,17 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
               "pruned +1 %": ExplicitModel(("x",), ("u",), ["1", "x"], np.array([[1.0], [-1.0]]), {})}
     picked = _selected(template, copied, scores2, tolerance=0.5, unstable_rate=1.0).metadata["selection"]
     assert picked["inconsistent_rest_points"]["refined"] == 1 and picked["chosen"] == "pruned +1 %"
+    # ... nor is its score the tolerance's yardstick: run freely it leaves the rest state, and its
+    # large error would let any pruned model count as near (here the sparsest, at 7x the best)
+    runaway = {"refined": copied["refined"],
+               "pruned +0.1 %": ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[1.0], [-1.0], [0.01]]), {}),
+               "pruned +1 %": ExplicitModel(("x",), ("u",), ["1", "x"], np.array([[1.0], [-1.0]]), {})}
+    runaway_scores = {"refined": 1.0, "pruned +0.1 %": 0.03, "pruned +1 %": 0.2}
+    assert _selected(template, runaway, runaway_scores, tolerance=0.5, unstable_rate=1.0).metadata["selection"][
+        "chosen"] == "pruned +0.1 %"
+    runaway_scores["pruned +1 %"] = 0.04  # within 1.5x of the best eligible score: the sparser one wins
+    assert _selected(template, runaway, runaway_scores, tolerance=0.5, unstable_rate=1.0).metadata["selection"][
+        "chosen"] == "pruned +1 %"
     # a candidate with no equilibrium at the records' operating points (dx/dt = 1 - 0.5 u never
     # vanishes at u = 0) does not win, however well it scores
     two["re-fit +300 %"] = ExplicitModel(("x",), ("u",), ["1", "u"], np.array([[1.0], [-0.5]]), {})
