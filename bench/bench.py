@@ -258,15 +258,19 @@ def selection_record(model):
     """What the engine's selection saw (``metadata["selection"]``): the chosen candidate, and each
     candidate's free-run training error (%; None: it ran away), nonzero coefficients, rest points
     it is inconsistent with, and grid voltages without an equilibrium where those were counted.
-    Stored so that a change of the selection rule can be replayed on a benchmark's candidates."""
+    Stored so that a change of the selection rule can be replayed on a benchmark's candidates
+    (exactly where the stability-verdict preference does not decide: the verdicts are not kept)."""
     selection = model.metadata.get("selection")
     if not selection:
         return {}
-    return {"selection": {"chosen": selection["chosen"],
+    return {"selection": {"chosen": selection["chosen"], "tolerance": finite(selection.get("tolerance")),
+                          "hold_error_pct": finite(selection.get("hold_error_pct")),
                           "training_error_pct": {k: finite(v) for k, v in selection["training_error_pct"].items()},
-                          "nonzero": dict(selection["nonzero"]),
-                          "inconsistent_rest_points": dict(selection["inconsistent_rest_points"]),
-                          "missing_equilibria": dict(selection.get("missing_equilibria") or {})}}
+                          "nonzero": {k: int(v) for k, v in selection["nonzero"].items()},
+                          "inconsistent_rest_points": {k: int(v) for k, v in
+                                                       selection["inconsistent_rest_points"].items()},
+                          "missing_equilibria": {k: int(v) for k, v in
+                                                 (selection.get("missing_equilibria") or {}).items()}}}
 
 
 def fmt(v, digits=3):

@@ -1023,16 +1023,30 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     picked = _selected(template, copied, scores2, tolerance=0.5, unstable_rate=1.0).metadata["selection"]
     assert picked["inconsistent_rest_points"]["refined"] == 1 and picked["chosen"] == "pruned +1 %"
     # ... nor is its score the tolerance's yardstick: run freely it leaves the rest state, and its
-    # large error would let any pruned model count as near (here the sparsest, at 7x the best)
+    # large error would let any pruned model count as near (here the sparsest, at 6.7x the best)
     runaway = {"refined": copied["refined"],
                "pruned +0.1 %": ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.array([[1.0], [-1.0], [0.01]]), {}),
                "pruned +1 %": ExplicitModel(("x",), ("u",), ["1", "x"], np.array([[1.0], [-1.0]]), {})}
     runaway_scores = {"refined": 1.0, "pruned +0.1 %": 0.03, "pruned +1 %": 0.2}
     assert _selected(template, runaway, runaway_scores, tolerance=0.5, unstable_rate=1.0).metadata["selection"][
         "chosen"] == "pruned +0.1 %"
+    # ... an infinite score (a free run that blew up) is no yardstick either
+    runaway_scores["refined"] = np.inf
+    assert _selected(template, runaway, runaway_scores, tolerance=0.5, unstable_rate=1.0).metadata["selection"][
+        "chosen"] == "pruned +0.1 %"
     runaway_scores["pruned +1 %"] = 0.04  # within 1.5x of the best eligible score: the sparser one wins
     assert _selected(template, runaway, runaway_scores, tolerance=0.5, unstable_rate=1.0).metadata["selection"][
         "chosen"] == "pruned +1 %"
+    # where a re-choice runs over some of the competing candidates only, a refined model that
+    # competes stays the yardstick even outside them
+    from pisml_ros.ident.estimators import _chosen_among
+
+    consistent = dict(runaway, refined=two["refined"])
+    subset_scores = {"refined": 0.03, "pruned +0.1 %": 0.03, "pruned +1 %": 0.04}
+    subset = ["pruned +0.1 %", "pruned +1 %"]
+    assert _chosen_among(subset, consistent, {**subset_scores, "pruned +1 %": 0.2}, 0.5, [], {}) == "pruned +0.1 %"
+    assert _chosen_among(subset, consistent, {**subset_scores, "refined": 0.2, "pruned +1 %": 0.2}, 0.5, [], {},
+                         competing=["refined", *subset]) == "pruned +1 %"
     # a candidate with no equilibrium at the records' operating points (dx/dt = 1 - 0.5 u never
     # vanishes at u = 0) does not win, however well it scores
     two["re-fit +300 %"] = ExplicitModel(("x",), ("u",), ["1", "u"], np.array([[1.0], [-0.5]]), {})

@@ -291,8 +291,9 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     When that is a refined model or one of its pruned sub-models (names ``pruned …``, of the same
     refinement start: :func:`_refinement_family`), the
     sparsest pruned one within ``tolerance`` (relative) of the refined model's error (or the
-    smallest, if larger; the smallest alone where the refined model does not compete: one
-    inconsistent with the rest points runs away from them, and its error is no yardstick) takes its place, preferring those whose stability verdicts at the
+    smallest, if larger; the smallest alone where the refined model does not compete, e.g. one
+    inconsistent with the rest points, which runs away from them: its error is no yardstick)
+    takes its place, preferring those whose stability verdicts at the
     training records' operating points (``reference_points``) are the refined model's (where it is
     among the candidates consistent with them): the data
     barely tell them apart from the best, a term the data cannot support is a liability out of
@@ -339,7 +340,7 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
         fewest = min(missing.values())
         if fewest < missing[chosen]:
             chosen = _chosen_among([name for name in eligible if missing[name] == fewest], candidates, scores,
-                                   tolerance, points, verdicts)
+                                   tolerance, points, verdicts, competing=eligible)
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
     # what P0 in its terms' (Pf - P0) is; how far the data pin its coefficients
@@ -360,20 +361,23 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
 
 
 def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: float, points: list,
-                  verdicts: dict) -> str:
+                  verdicts: dict, competing: list | None = None) -> str:
     """The name :func:`_selected` chooses among the ``eligible`` candidates: the best score, or the
-    sparsest pruned model of its refinement family near it."""
+    sparsest pruned model of its refinement family near it. ``competing`` (default ``eligible``):
+    the candidates the selection let compete, of which ``eligible`` may be a subset; the refined
+    model's score is the tolerance's yardstick where it is among them."""
     best = min(eligible, key=lambda name: scores[name])
     chosen = best
     family = _refinement_family(best)
     if family is not None:
         refined_name = "refined" + family
         # judged against the full-support refinement they approximate (a pruned model can score a
-        # little better than it, which must not narrow the choice) where that is itself eligible:
-        # one inconsistent with the rest points runs away from them freely and its score is no
-        # yardstick (stop 40: at 40 dB the refined models grew at +1 to +100 1/s there and scored
-        # 2-26 %, so every pruned model was "near" and the sparsest won whatever it scored)
-        reference = max(scores[best], scores[refined_name]) if refined_name in eligible else scores[best]
+        # little better than it, which must not narrow the choice) where that competes itself: one
+        # inconsistent with the rest points runs away from them freely and its score is no yardstick
+        # (stop 40: at 40 dB the refined models grew at +1 to +100 1/s there and scored 2-26 % or
+        # inf, so every pruned model was "near" and the sparsest won whatever it scored)
+        competing = eligible if competing is None else competing
+        reference = max(scores[best], scores[refined_name]) if refined_name in competing else scores[best]
         near = [name for name in eligible if name.startswith("pruned") and _refinement_family(name) == family
                 and scores[name] <= reference * (1 + tolerance)]
         # the refined model's verdicts, not "stable": a record can start at a weakly unstable
