@@ -1,0 +1,101 @@
+"""Score every candidate of one PISML fit on the test records, not only the chosen one.
+
+The selection sees training errors only; this script fits PISML on one recording of a scenario
+(`bench/scenarios_bench.py`'s SCENARIOS; "protocol" is `make bench`'s recordings) and prints, for
+every candidate the engine built, what the selection saw (free-run training error, rest points
+it is inconsistent with, coefficients) next to what the selection cannot see: IOD / OOD error on
+the protocol's test records, the spectrum's Wasserstein distance at ug 0.8, spurious unstable
+modes over ug 0.2-1.1, and the largest real part at the records' rest points. It is the tool
+behind the measured notes in ``pisml_ros/ident/config.py`` (stop 40; scratch ``jc.py`` before).
+
+    .venv/bin/python bench/candidates.py --scenario protocol --seed 3 --noise 40 \
+        [--set KEY=VALUE ...] [--out candidates.json]
+
+``--out`` writes every candidate as an explicit model JSON (name -> model dict) and the rows.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+BENCH = Path(__file__).resolve().parent
+sys.path[:0] = [str(BENCH), str(BENCH.parent)]
+
+
+def main(argv=None) -> int:
+    from bench import finite, make_estimator, plant_grid, spectra
+    from scenarios_bench import SCENARIOS, scenario_datasets
+
+    from pisml_ros.analysis.metrics import protocol_errors, spectrum_wasserstein
+    from pisml_ros.ident import IdentConfig
+    from pisml_ros.ident.trajfit import steady_start_mean
+    from pisml_ros.model import ExplicitModel
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", default="protocol", help=f"one of {sorted(SCENARIOS)}")
+    parser.add_argument("--seed", type=int, default=0, help="recording (scenario and noise seed)")
+    parser.add_argument("--noise", default="40", help="'clean' or an SNR in dB")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="identification setting (JSON value), repeatable")
+    parser.add_argument("--out", help="JSON file for the candidates' models and rows")
+    args = parser.parse_args(argv)
+    if args.scenario not in SCENARIOS:
+        parser.error(f"--scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
+    settings = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            parser.error(f"--set {item!r}: expected KEY=VALUE")
+        try:
+            settings[key] = json.loads(value)
+        except json.JSONDecodeError:
+            settings[key] = value
+    snr = None if args.noise == "clean" else float(args.noise)
+
+    plant, train, small, test = scenario_datasets(SCENARIOS[args.scenario], snr, args.seed)
+    grid = plant_grid(plant)
+    truth = {g: plant.eigenvalues(g, 0.0) for g in grid}
+    started = time.monotonic()
+    est = make_estimator("pisml", IdentConfig.from_mapping(settings)).fit(train, small)
+    selection = est.model_.metadata["selection"]
+    print(f"fit {time.monotonic() - started:.1f} s, chosen {selection['chosen']!r}", flush=True)
+    rests = [(rest, record.u[0]) for record in [*train, *small]
+             for _, rest in [steady_start_mean(record)] if rest is not None]
+    rows, models = {}, {}
+    for name, candidate in est.candidates_.items():
+        model = ExplicitModel(candidate.state_names, candidate.input_names, candidate.terms,
+                              candidate.coefficients, {})
+        models[name] = model.to_dict()
+        try:
+            errors = protocol_errors(model, test)
+        except Exception:  # a candidate that cannot be simulated is a result here
+            errors = {"iod": float("nan"), "ood": float("nan")}
+        found = spectra(model, grid)
+        w = spectrum_wasserstein(found[0.8], truth[0.8]) if found[0.8] is not None else float("nan")
+        rest_max = [float(np.max(np.linalg.eigvals(model.jacobian(x, u)).real)) for x, u in rests]
+        row = {"score": finite(selection["training_error_pct"].get(name)),
+               "inconsistent": selection["inconsistent_rest_points"].get(name),
+               "coefficients": int(candidate.n_parameters), "iod": finite(errors["iod"]),
+               "ood": finite(errors["ood"]), "w_ug08": finite(w),
+               "spurious": [g for g in grid if g <= 1.1 and found[g] is not None
+                            and found[g].real.max() > 0 > truth[g].real.max()],
+               "rest_max_real": [min(rest_max), max(rest_max)] if rest_max else None}
+        rows[name] = row
+        print(f"{name:50s} score {row['score'] if row['score'] is not None else float('inf'):8.3f} "
+              f"inc {row['inconsistent']!s:3} n {row['coefficients']:4d} IOD {errors['iod']:8.3f} "
+              f"OOD {errors['ood']:8.3f} W {w:8.2f} spurious {row['spurious']} "
+              f"rest max Re {np.round(row['rest_max_real'], 2) if rest_max else '—'}", flush=True)
+    if args.out:
+        Path(args.out).write_text(json.dumps({"scenario": args.scenario, "seed": args.seed, "noise": args.noise,
+                                              "settings": settings, "chosen": selection["chosen"],
+                                              "rows": rows, "models": models}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
