@@ -1042,11 +1042,10 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     from pisml_ros.ident.estimators import _chosen_among
 
     consistent = dict(runaway, refined=two["refined"])
-    subset_scores = {"refined": 0.03, "pruned +0.1 %": 0.03, "pruned +1 %": 0.04}
     subset = ["pruned +0.1 %", "pruned +1 %"]
-    assert _chosen_among(subset, consistent, {**subset_scores, "pruned +1 %": 0.2}, 0.5, [], {}) == "pruned +0.1 %"
-    assert _chosen_among(subset, consistent, {**subset_scores, "refined": 0.2, "pruned +1 %": 0.2}, 0.5, [], {},
-                         competing=["refined", *subset]) == "pruned +1 %"
+    subset_scores = {"refined": 0.2, "pruned +0.1 %": 0.03, "pruned +1 %": 0.2}
+    assert _chosen_among(subset, consistent, subset_scores, 0.5, [], {}) == "pruned +0.1 %"
+    assert _chosen_among(subset, consistent, subset_scores, 0.5, [], {}, competing=["refined", *subset]) == "pruned +1 %"
     # a candidate with no equilibrium at the records' operating points (dx/dt = 1 - 0.5 u never
     # vanishes at u = 0) does not win, however well it scores
     two["re-fit +300 %"] = ExplicitModel(("x",), ("u",), ["1", "u"], np.array([[1.0], [-0.5]]), {})

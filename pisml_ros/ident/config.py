@@ -154,8 +154,8 @@ class IdentConfig:
     # to pay for it: 1.14 / 2.82, 1.24 / 5.21, 0.92 / 0.76. Later rounds at windows of 50 (8
     # evaluations) instead of 100: 0.26 / 0.28, 0.76 / 0.55, 0.58 / 0.38, 0.72 / 0.99, 0.58 / 1.87;
     # later rounds at +0.05 % (4 rounds): 0.25 / 0.34, 0.62 / 0.67, 0.68 / 0.54, 0.88 / 0.74; at
-    # +0.2 % (2 rounds): 0.43 / 0.35, 0.91 / 0.46, 0.62 / 0.45, 0.87 / 0.71. Stop 40 (scratch
-    # /tmp/exp/jc.py, stop 39's engine, recordings 0-4), 4 rounds: the fourth round's model chosen on
+    # +0.2 % (2 rounds): 0.43 / 0.35, 0.91 / 0.46, 0.62 / 0.45, 0.87 / 0.71. Stop 40 (scratch, as
+    # bench/candidates.py --set refine_prune_rounds=4, stop 39's engine, recordings 0-4), 4 rounds: the fourth round's model chosen on
     # 0, 1, 2 and 4, 0.15 / 0.47 (71), 0.91 / 0.44 (82, spurious unstable at ug 0.2), 0.53 / 0.49
     # (77, spurious at 0.2-0.4; it scored 1.9x the best and won only through the refined model's
     # inflated score, see selection_tolerance), 0.60 / 0.94 (127, spurious at 0.2-1.1); 3 unchanged;
