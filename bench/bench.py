@@ -202,6 +202,12 @@ def operating_point_errors(model, plant, grid=OPERATING_POINT_GRID) -> dict:
     return {key: float(v) for key, v in worst.items()}
 
 
+def spurious_points(model_spectra, truth_spectra):
+    """Grid ug (up to 1.1) where the model has an unstable mode and the plant has none."""
+    return [g for g in truth_spectra if g <= 1.1 and model_spectra[g] is not None
+            and model_spectra[g].real.max() > 0 > truth_spectra[g].real.max()]
+
+
 def finite(x):
     return None if x is None or not np.isfinite(x) else float(x)
 
@@ -233,8 +239,7 @@ def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, lab
     row["ug_grid"] = grid
     row["spectra_found"] = sum(v is not None for v in model_spectra.values())
     row["no_equilibrium"] = [g for g in grid if model_spectra[g] is None]
-    row["spurious_unstable"] = [g for g in grid if g <= 1.1 and model_spectra[g] is not None
-                                and model_spectra[g].real.max() > 0 > truth_spectra[g].real.max()]
+    row["spurious_unstable"] = spurious_points(model_spectra, truth_spectra)
     row["missed_unstable"] = [g for g in grid if truth_spectra[g].real.max() > 0
                               and (model_spectra[g] is None or model_spectra[g].real.max() <= 0)]
     if est.explicit_model_ is not None:

@@ -28,7 +28,7 @@ sys.path[:0] = [str(BENCH), str(BENCH.parent)]
 
 
 def main(argv=None) -> int:
-    from bench import finite, make_estimator, plant_grid, spectra
+    from bench import finite, make_estimator, plant_grid, spectra, spurious_points
     from scenarios_bench import SCENARIOS, scenario_datasets
 
     from pisml_ros.analysis.metrics import protocol_errors, spectrum_wasserstein
@@ -41,27 +41,24 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="recording (scenario and noise seed)")
     parser.add_argument("--noise", default="40", help="'clean' or an SNR in dB")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="identification setting (JSON value), repeatable")
+                        help="identification setting, repeatable (as pisml identify --set)")
     parser.add_argument("--out", help="JSON file for the candidates' models and rows")
     args = parser.parse_args(argv)
     if args.scenario not in SCENARIOS:
         parser.error(f"--scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
-    settings = {}
+    settings = {}  # as `pisml identify --set`: IdentConfig converts the strings
     for item in args.set:
         key, sep, value = item.partition("=")
         if not sep:
             parser.error(f"--set {item!r}: expected KEY=VALUE")
-        try:
-            settings[key] = json.loads(value)
-        except json.JSONDecodeError:
-            settings[key] = value
+        settings[key.strip()] = value.strip()
     snr = None if args.noise == "clean" else float(args.noise)
 
     plant, train, small, test = scenario_datasets(SCENARIOS[args.scenario], snr, args.seed)
     grid = plant_grid(plant)
     truth = {g: plant.eigenvalues(g, 0.0) for g in grid}
     started = time.monotonic()
-    est = make_estimator("pisml", IdentConfig.from_mapping(settings)).fit(train, small)
+    est = make_estimator("pisml", IdentConfig.load(None, settings)).fit(train, small)
     selection = est.model_.metadata["selection"]
     print(f"fit {time.monotonic() - started:.1f} s, chosen {selection['chosen']!r}", flush=True)
     rests = [(rest, record.u[0]) for record in [*train, *small]
@@ -82,8 +79,7 @@ def main(argv=None) -> int:
                "inconsistent": selection["inconsistent_rest_points"].get(name),
                "coefficients": int(candidate.n_parameters), "iod": finite(errors["iod"]),
                "ood": finite(errors["ood"]), "w_ug08": finite(w),
-               "spurious": [g for g in grid if g <= 1.1 and found[g] is not None
-                            and found[g].real.max() > 0 > truth[g].real.max()],
+               "spurious": spurious_points(found, truth),
                "rest_max_real": [min(rest_max), max(rest_max)] if rest_max else None}
         rows[name] = row
         print(f"{name:50s} score {row['score'] if row['score'] is not None else float('inf'):8.3f} "
