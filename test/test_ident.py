@@ -328,10 +328,40 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     # noisy records are refined in growing windows anyway: no fallback on top
     from pisml_ros.plant.noise import add_measurement_noise
 
-    noisy = make_estimator("pisml", IdentConfig.from_mapping({**FAST, "clean_growing_error": 0.0})).fit(
+    # (refine_rescue_ratio 0: the rescue of noisy fits always runs here, tested below)
+    noisy = make_estimator("pisml", IdentConfig.from_mapping(
+        {**FAST, "clean_growing_error": 0.0, "refine_rescue_ratio": 0.0})).fit(
         add_measurement_noise(train, 40.0, seed=1), add_measurement_noise(small, 40.0, seed=2))
     assert "refinement_growing_fallback" not in noisy.explicit_model_.metadata
     assert not any(name.endswith("from distilled") for name in noisy.candidates_)
+    # the rescue of a noisy fit: the first start refined again with the stability prior in the
+    # growing-window stages, a family of its own that competes in the selection
+    rescue = noisy.explicit_model_.metadata["refinement_rescue"]
+    scored = noisy.explicit_model_.metadata["selection"]["training_error_pct"]
+    assert rescue["run"] and rescue["ratio"] == pytest.approx(rescue["error_pct"] / rescue["noise_floor_pct"])
+    assert not rescue["selected_before"].endswith("with growing prior")
+    assert rescue["added"] == sorted(name for name in noisy.candidates_ if name.endswith(" with growing prior"))
+    assert "refined with growing prior" in rescue["added"] and set(rescue["added"]) <= set(scored)
+    weight = IdentConfig().refine_rescue_stability_weight
+    prior = noisy.candidates_["refined with growing prior"].metadata["refinement"]
+    assert prior["growing_windows"]["stability_weight"] == weight > 0
+    assert noisy.candidates_["refined"].metadata["refinement"]["growing_windows"]["stability_weight"] == 0
+    assert prior["start"] == noisy.candidates_["refined"].metadata["refinement"]["start"]
+    assert noisy.metrics_["refinement_rescue"] == 1.0
+
+
+def test_noise_floor_error_is_what_the_noise_alone_leaves(train, small):
+    # a model reproducing the noise-free states exactly scores the noise floor against noisy records
+    from pisml_ros.data.dataset import concat_datasets
+    from pisml_ros.ident.noise import noise_floor_error
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    clean = concat_datasets([train, small])
+    for snr in (40.0, 30.0):
+        noisy = add_measurement_noise(clean, snr, seed=4)
+        exact = np.mean([relative_error(c.x, n.x) for c, n in zip(clean, noisy)])
+        assert noise_floor_error(noisy) == pytest.approx(exact, rel=0.15)
+    assert noise_floor_error(clean) < 1e-3 * noise_floor_error(add_measurement_noise(clean, 40.0, seed=4))
 
 
 def test_pure_node_has_no_explicit_model_but_a_spectrum(train):

@@ -261,6 +261,21 @@ class IdentConfig:
     # 0.32 / 0.52, 0.30 / 0.47, 0.31 / 0.39, 1.79 / 3.26; 0.1: 0.38 / 3.60, 0.35 / 0.62, 0.75 / 1.82,
     # 0.47 / 0.68; 1: 0.95 / 1.81, 0.57 / 3.24, 0.36 / 0.56, 0.31 / 0.84
     refine_growing_stability_weight: float = 0.0
+    # noisy data, a second try where the refinement went wrong: where the model the selection would
+    # take scores (training error, %) above refine_rescue_ratio times what the noise alone leaves
+    # (ident.noise.noise_floor_error), the first start is refined again with
+    # refine_rescue_stability_weight in the growing-window stages, and that family ("... with growing
+    # prior") competes in the selection; inf: off. The chosen models' ratio (stop 40's runs, 40 dB):
+    # 1.2-1.9 on the benchmark's recordings within the targets and on the scenarios' but 20 kHz seed 0
+    # (1.3, 1.88 / 0.27 %), 2.27 on recording 5 (0.58 / 0.60 %); above: recording 3 (2.68, 0.90 /
+    # 1.43 %), 8 x 60 ms seed 1 (2.94, 0.92 / 5.87 %), 5 kHz seed 1 (4.3, 4.95 / 8.29 %). Those three
+    # with the prior in the growing stages alone (scratch, bench/candidates.py): weight 0.1: 0.33 /
+    # 0.50 % (89 coefficients; it scores 2.47 against 4.30), 0.34 / 1.32 % (104; 3.06 against 5.75), no
+    # better at 5 kHz (its family inconsistent with the rest points); weight 1: 0.61 / 1.72 (spurious
+    # modes), 0.68 / 2.07, 1.62 / 8.53 %. The prior is not the default itself: on recordings 0 / 1 / 2
+    # it cost accuracy (above)
+    refine_rescue_ratio: float = 2.5
+    refine_rescue_stability_weight: float = 0.1
     # where the prior holds: "records" at the rest states of the small-signal and the training
     # records (a record starts where the plant sat at rest), "smallsignal" at the small-signal
     # records' only. A soft prior: a record can start at a weakly unstable equilibrium (protocol ug
@@ -405,7 +420,8 @@ class IdentConfig:
         for key in ["backbone_threshold", "backbone_alpha", "coupling_min_separation", "dropout", "lambda_pert", "lambda_sparse",
                     "distill_threshold", "distill_spread", "refine_max_nfev", "selection_tolerance", "selection_unstable_rate",
                     "refine_stability_weight", "refine_stability_margin", "refine_equilibrium_weight",
-                    "refine_growing_stability_weight", "refine_stage_prune_budget", "refine_stage_tolerance",
+                    "refine_growing_stability_weight", "refine_rescue_ratio", "refine_rescue_stability_weight",
+                    "refine_stage_prune_budget", "refine_stage_tolerance",
                     "refine_prune_reference_samples", "refine_rest_weight", "refine_ridge_weight", "refine_max_step", "clean_growing_error"]:
             if getattr(self, key) < 0:
                 raise ConfigError(f"identification config: {key} must be >= 0, got {getattr(self, key)}")

@@ -561,15 +561,17 @@ class PISML(_Estimator):
             started = time.monotonic()
             starts = _refinement_starts(candidates, scores, explicit.metadata.get("reference_points") or [], verdicts)
 
-            def refine_from(start, progress, growing=None):
+            def refine_from(start, progress, growing=None, config=None):
                 errors: dict = {}
                 begin = _couplings_centred(_integrators_restricted(candidates[start], cfg, train), cfg, train)
-                refined = refine_explicit(begin, train, smallsignal, cfg, progress, start_error=scores[start],
-                                          errors=errors, scoring=scoring, growing=growing)
+                refined = refine_explicit(begin, train, smallsignal, config or cfg, progress,
+                                          start_error=scores[start], errors=errors, scoring=scoring,
+                                          growing=growing)
                 return refined, errors
 
-            def add(k, refined, errors):
-                suffix = "" if k == 0 else f" from {starts[k]}"
+            def add(k, refined, errors, suffix=None):
+                if suffix is None:
+                    suffix = "" if k == 0 else f" from {starts[k]}"
                 for name, model in refined.items():
                     model.metadata["refinement"]["start"] = starts[k]
                     candidates[name + suffix] = model
@@ -603,6 +605,8 @@ class PISML(_Estimator):
                 self.metrics_["refinement_starts_run"] = float(sum(name.startswith("refined") for name in candidates))
             if not noisy and cfg.refine_growing_windows and "distilled" in candidates:
                 self._clean_growing_fallback(explicit, candidates, scores, verdicts, hold, starts, refine_from, add)
+            if noisy and cfg.refine_growing_windows and np.isfinite(cfg.refine_rescue_ratio):
+                self._noisy_rescue(explicit, candidates, scores, verdicts, hold, starts, scoring, refine_from, add)
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the records when run freely
         # from their rest states or first samples (refinement that made things worse is dropped), or
@@ -640,6 +644,36 @@ class PISML(_Estimator):
         explicit.metadata["refinement_growing_fallback"] = {
             "selected_before": chosen, "error_pct": scores[chosen], "added": sorted(set(candidates) - before)}
         self.metrics_["clean_growing_fallback"] = 1.0
+
+
+    def _noisy_rescue(self, explicit, candidates, scores, verdicts, hold, starts, scoring, refine_from, add):
+        """On noisy data, where the model the selection would take scores above
+        ``refine_rescue_ratio`` times what the noise alone leaves (:func:`~pisml_ros.ident.noise.noise_floor_error`
+        of the scoring records): the growing-window stages, which have no stability prior, let the
+        refinement wander to models that run away from the records' rest points (stop 41: the three
+        40 dB fits above the ratio were the three worst of 24 recordings), so the first start is
+        refined again with ``refine_rescue_stability_weight`` in those stages, and that family
+        (``… with growing prior``) joins the candidates. Recorded in the metadata
+        (``refinement_rescue``) and the metrics."""
+        from .noise import noise_floor_error
+
+        cfg = self.config
+        chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
+                                       hold).metadata["selection"]["chosen"]
+        floor = noise_floor_error(scoring)
+        ratio = scores[chosen] / max(floor, 1e-12)
+        record = {"selected_before": chosen, "error_pct": scores[chosen], "noise_floor_pct": floor,
+                  "ratio": ratio, "run": bool(ratio > cfg.refine_rescue_ratio)}
+        explicit.metadata["refinement_rescue"] = record
+        if not record["run"]:
+            return
+        self._emit("refinement", 0.84)
+        before = set(candidates)
+        rescue = dataclasses.replace(cfg, refine_growing_stability_weight=cfg.refine_rescue_stability_weight)
+        add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
+            "refinement", 0.84 + 0.14 * fraction, losses=losses), config=rescue), suffix=" with growing prior")
+        record["added"] = sorted(set(candidates) - before)
+        self.metrics_["refinement_rescue"] = 1.0
 
 
 def _configured_selection(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
@@ -1209,7 +1243,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     if result is None:
         return {}
     schedule = {"windows": [w for w, _ in stages], "evaluations": [n for _, n in stages],
-                "pruned_between": pruned_between}
+                "pruned_between": pruned_between, "stability_weight": cfg.refine_growing_stability_weight}
     meta["refinement"] = {"cost": result.cost, "nfev": used[0], "seconds": time.monotonic() - started,
                           "abandoned": False, "growing_windows": schedule, "rk4_substeps": sorted(substeps_used or ())}
     out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients,
