@@ -268,7 +268,10 @@ def selection_record(model):
     selection = model.metadata.get("selection")
     if not selection:
         return {}
-    return {"selection": {"chosen": selection["chosen"], "tolerance": finite(selection.get("tolerance")),
+    rescue = model.metadata.get("refinement_rescue")  # noisy data: the second try's trigger (since stop 41)
+    rescue = {} if not rescue else {"rescue": {"ran": bool(rescue["run"]), "ratio": finite(rescue["ratio"]),
+                                               "noise_floor_pct": finite(rescue["noise_floor_pct"])}}
+    return {"selection": {**rescue, "chosen": selection["chosen"], "tolerance": finite(selection.get("tolerance")),
                           "hold_error_pct": finite(selection.get("hold_error_pct")),
                           "training_error_pct": {k: finite(v) for k, v in selection["training_error_pct"].items()},
                           "nonzero": {k: int(v) for k, v in selection["nonzero"].items()},

@@ -952,6 +952,13 @@ def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
     selection = _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0,
                           equilibrium_grid=grid).metadata["selection"]
     assert selection["chosen"] == "pruned +0.1 % x3" and selection["inconsistent_rest_points"]["pruned +0.1 %"] == 2
+    # nor where no candidate reproduces the records better than holding their first states: the best
+    # score stands (a collapsed pruning with a whole branch took 20 dB data to 123 % IOD, stop 41)
+    candidates["pruned +0.1 %"] = model(0.0, 0.01)
+    assert _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0, equilibrium_grid=grid,
+                     hold=0.01).metadata["selection"]["chosen"] == "pruned +0.1 % x3"
+    assert _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0, equilibrium_grid=grid,
+                     hold=0.05).metadata["selection"]["chosen"] == "pruned +0.1 %"
 
 
 def test_selection_records_in_words_what_is_wrong_with_the_chosen_model():
