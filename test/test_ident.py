@@ -329,9 +329,13 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     from pisml_ros.plant.noise import add_measurement_noise
 
     # (refine_rescue_ratio 0: the rescue of noisy fits always runs here, tested below)
+    updates.clear()
     noisy = make_estimator("pisml", IdentConfig.from_mapping(
         {**FAST, "clean_growing_error": 0.0, "refine_rescue_ratio": 0.0})).fit(
-        add_measurement_noise(train, 40.0, seed=1), add_measurement_noise(small, 40.0, seed=2))
+        add_measurement_noise(train, 40.0, seed=1), add_measurement_noise(small, 40.0, seed=2),
+        callback=updates.append)
+    progress = [u.progress for u in updates]
+    assert progress == sorted(progress) and progress[-1] == 1.0
     assert "refinement_growing_fallback" not in noisy.explicit_model_.metadata
     assert not any(name.endswith("from distilled") for name in noisy.candidates_)
     # the rescue of a noisy fit: the first start refined again with the stability prior in the

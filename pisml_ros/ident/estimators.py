@@ -71,6 +71,7 @@ class _Estimator:
     def _emit(self, stage, progress, epoch=0, losses=None, model=None):
         if self._should_stop():
             raise IdentificationCancelled(f"{self.method}: cancelled during {stage}")
+        self._progress = float(progress)  # the last reported: a later optional stage continues from it
         self._callback(StageUpdate(stage, float(progress), int(epoch), dict(losses or {}), model))
 
     def _finish(self, model, explicit):
@@ -648,13 +649,12 @@ class PISML(_Estimator):
             "selected_before": chosen, "error_pct": scores[chosen], "added": sorted(set(candidates) - before)}
         self.metrics_["clean_growing_fallback"] = 1.0
 
-
     def _noisy_rescue(self, explicit, candidates, scores, verdicts, hold, starts, scoring, refine_from, add):
         """On noisy data, where the model the selection would take scores above
         ``refine_rescue_ratio`` times what the noise alone leaves (:func:`~pisml_ros.ident.noise.noise_floor_error`
         of the scoring records): the growing-window stages, which have no stability prior, let the
         refinement wander to models that run away from the records' rest points (stop 41: the three
-        40 dB fits above the ratio were the three worst of 24 recordings), so the first start is
+        of stop 40's 40 dB fits of the default plant above the ratio were its three worst), so the first start is
         refined again with ``refine_rescue_stability_weight`` in those stages, and that family
         (``… with growing prior``) joins the candidates. Recorded in the metadata
         (``refinement_rescue``) and the metrics."""
@@ -670,11 +670,12 @@ class PISML(_Estimator):
         explicit.metadata["refinement_rescue"] = record
         if not record["run"]:
             return
-        self._emit("refinement", 0.84)
+        # progress goes on from where the refinement starts left it (0.84, or 0.98 after two starts)
+        base = max(getattr(self, "_progress", 0.84), 0.84)
         before = set(candidates)
         rescue = dataclasses.replace(cfg, refine_growing_stability_weight=cfg.refine_rescue_stability_weight)
         add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
-            "refinement", 0.84 + 0.14 * fraction, losses=losses), config=rescue), suffix=" with growing prior")
+            "refinement", base + (0.99 - base) * fraction, losses=losses), config=rescue), suffix=" with growing prior")
         record["added"] = sorted(set(candidates) - before)
         self.metrics_["refinement_rescue"] = 1.0
 
