@@ -104,6 +104,9 @@ def test_chain_delivers_the_engine_model_and_its_stability(probe, tmp_path, clea
                 assert np.min(np.abs(eig - lam)) < 0.25 * abs(lam), (ug, lam, eig)
             assert report.stable and report.equilibrium_found and len(report.modes) == 13
             assert np.isfinite(report.ug_margin) and report.ug_margin > 0
+        # the node publishes the final model first, then its diagnostics say "done" (a fast analyser's
+        # reports can arrive in between: stop 41's CI run read "explicit" there)
+        assert spin_until(probe, lambda: diagnostic_values(diags, "pisml: identifier")[1].get("stage") == "done", 5.0)
         _, values = diagnostic_values(diags, "pisml: identifier")
         assert values["stage"] == "done" and values["complete_trajectories"] == "12"
         assert spin_until(probe, lambda: diagnostic_values(diags, "pisml: stability ug=0.8")[0] is not None, 5.0)
