@@ -268,8 +268,9 @@ class IdentConfig:
     # prior") competes in the selection; inf: off. The chosen models' ratio (stop 40's runs, 40 dB):
     # 1.2-1.9 on the benchmark's recordings within the targets and on the scenarios' but 20 kHz seed 0
     # (1.3, 1.88 / 0.27 %), 2.27 on recording 5 (0.58 / 0.60 %); above: recording 3 (2.68, 0.90 /
-    # 1.43 %), 8 x 60 ms seed 1 (2.94, 0.92 / 5.87 %), 5 kHz seed 1 (4.3, 4.95 / 8.29 %). Those three
-    # with the prior in the growing stages alone (scratch, bench/candidates.py): weight 0.1: 0.33 /
+    # 1.43 %), 8 x 60 ms seed 1 (2.94, 0.92 / 5.87 %), 5 kHz seed 1 (4.3, 4.95 / 8.29 %; 3.9 in stop
+    # 41's run). Those three with the prior in the growing stages alone (scratch,
+    # bench/candidates.py): weight 0.1: 0.33 /
     # 0.50 % (89 coefficients; it scores 2.47 against 4.30), 0.34 / 1.32 % (104; 3.06 against 5.75), no
     # better at 5 kHz (its family inconsistent with the rest points); weight 1: 0.61 / 1.72 (spurious
     # modes), 0.68 / 2.07, 1.62 / 8.53 %. With the rescue: recording 3 0.33 / 0.50 % (89), 8 x 60 ms
@@ -450,6 +451,9 @@ class IdentConfig:
         if 0 < self.refine_max_step < 1e-7:
             raise ConfigError(f"identification config: refine_max_step must be 0 (off) or at least 1e-7 s, got "
                               f"{self.refine_max_step}")
+        for key in ("refine_rescue_ratio", "refine_rescue_stability_weight"):
+            if not getattr(self, key) >= 0:  # also NaN, which would switch the rescue off unseen
+                raise ConfigError(f"identification config: {key} must be >= 0 (inf: off), got {getattr(self, key)}")
         if not 0 <= self.dropout < 1:
             raise ConfigError(f"identification config: dropout must be in [0, 1), got {self.dropout}")
         if self.integrator_terms not in ("linear", "any"):

@@ -308,7 +308,7 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     56 % against the hold's 40 %), which had an equilibrium at every rest point and won where every
     sound candidate was inconsistent with some.
 
-    Where the candidate so chosen has no equilibrium at some of the grid voltages
+    Where some candidate beats the hold, the candidate so chosen has no equilibrium at some of the grid voltages
     ``equilibrium_grid`` (:func:`_grid_inputs`; where the analysis will be asked, inside the data or
     not) and another eligible candidate has one at more of them, the choice above is made again
     among the eligible candidates with the fewest missing: a model that cannot be analysed at a grid
@@ -665,12 +665,15 @@ class PISML(_Estimator):
                                        hold).metadata["selection"]["chosen"]
         floor = noise_floor_error(scoring)
         ratio = scores[chosen] / max(floor, 1e-12)
-        record = {"selected_before": chosen, "error_pct": scores[chosen], "noise_floor_pct": floor,
-                  "ratio": ratio, "run": bool(ratio > cfg.refine_rescue_ratio)}
+        # (with the same weight as the first refinement's it would only repeat it)
+        record = {"selected_before": chosen, "error_pct": scores[chosen], "noise_floor_pct": floor, "ratio": ratio,
+                  "run": bool(ratio > cfg.refine_rescue_ratio
+                              and cfg.refine_rescue_stability_weight != cfg.refine_growing_stability_weight)}
         explicit.metadata["refinement_rescue"] = record
         if not record["run"]:
             return
-        # progress goes on from where the refinement starts left it (0.84, or 0.98 after two starts)
+        # progress goes on from where the refinement starts left it (0.84 after the first start alone,
+        # 0.98 after two, or after the starts run side by side)
         base = max(getattr(self, "_progress", 0.84), 0.84)
         before = set(candidates)
         rescue = dataclasses.replace(cfg, refine_growing_stability_weight=cfg.refine_rescue_stability_weight)
