@@ -269,10 +269,9 @@ class IdentConfig:
     # 1.2-1.9 on the benchmark's recordings within the targets and on the scenarios' but 20 kHz seed 0
     # (1.3, 1.88 / 0.27 %), 2.27 on recording 5 (0.58 / 0.60 %); above: recording 3 (2.68, 0.90 /
     # 1.43 %), 8 x 60 ms seed 1 (2.94, 0.92 / 5.87 %), 5 kHz seed 1 (4.3, 4.95 / 8.29 %; 3.9 in stop
-    # 41's run). Those three with the prior in the growing stages alone (scratch,
-    # bench/candidates.py): weight 0.1: 0.33 /
-    # 0.50 % (89 coefficients; it scores 2.47 against 4.30), 0.34 / 1.32 % (104; 3.06 against 5.75), no
-    # better at 5 kHz (its family inconsistent with the rest points); weight 1: 0.61 / 1.72 (spurious
+    # 41's run). Those three with the prior in the growing stages alone (scratch, bench/candidates.py):
+    # weight 0.1: 0.33 / 0.50 % (89 coefficients; it scores 2.47 against 4.30), 0.34 / 1.32 % (104;
+    # 3.06 against 5.75), no better at 5 kHz (its family inconsistent with the rest points); weight 1: 0.61 / 1.72 (spurious
     # modes), 0.68 / 2.07, 1.62 / 8.53 %. With the rescue: recording 3 0.33 / 0.50 % (89), 8 x 60 ms
     # seed 1 0.34 / 1.32 % (104). Forced (ratio 0) where the fit was fine, the family wins the
     # selection and helps no more: recording 0 0.39 / 0.28 % (82; was 0.16 / 0.44 %), 4 0.33 / 2.40 %
@@ -424,8 +423,7 @@ class IdentConfig:
         for key in ["backbone_threshold", "backbone_alpha", "coupling_min_separation", "dropout", "lambda_pert", "lambda_sparse",
                     "distill_threshold", "distill_spread", "refine_max_nfev", "selection_tolerance", "selection_unstable_rate",
                     "refine_stability_weight", "refine_stability_margin", "refine_equilibrium_weight",
-                    "refine_growing_stability_weight", "refine_rescue_ratio", "refine_rescue_stability_weight",
-                    "refine_stage_prune_budget", "refine_stage_tolerance",
+                    "refine_growing_stability_weight", "refine_stage_prune_budget", "refine_stage_tolerance",
                     "refine_prune_reference_samples", "refine_rest_weight", "refine_ridge_weight", "refine_max_step", "clean_growing_error"]:
             if getattr(self, key) < 0:
                 raise ConfigError(f"identification config: {key} must be >= 0, got {getattr(self, key)}")
