@@ -75,6 +75,10 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
     with pytest.raises(ConfigError, match="refine_rescue_ratio must be >= 0"):
         IdentConfig.from_mapping({"refine_rescue_ratio": "nan"})
     assert IdentConfig.from_mapping({"refine_rescue_ratio": "inf"}).refine_rescue_ratio == math.inf
+    with pytest.raises(ConfigError, match="selection_round_rise must be >= 0"):
+        IdentConfig.from_mapping({"selection_round_rise": "nan"})
+    with pytest.raises(ConfigError, match="selection_round_rise must be >= 0"):
+        IdentConfig.from_mapping({"selection_round_rise": -0.1})
     with pytest.raises(ConfigError, match="clean_growing_error must be >= 0"):
         IdentConfig.from_mapping({"clean_growing_error": -0.1})
     assert IdentConfig.from_mapping({"clean_growing_error": "inf"}).clean_growing_error == math.inf
@@ -1029,6 +1033,39 @@ def test_hold_error_is_the_error_of_holding_each_records_first_state(plant):
     frozen = ExplicitModel(STATE_NAMES, INPUT_NAMES, ["1"], np.zeros((1, 13)))
     assert hold_error(records) == pytest.approx(training_error(frozen, records), rel=1e-9)
     assert 5.0 < hold_error(records) < 100.0
+
+
+def test_selection_passes_over_a_prune_round_that_lost_the_fit_and_the_rounds_after_it():
+    from pisml_ros.ident.estimators import _lost_rounds, _selected
+
+    def model(nonzero):
+        coef = np.zeros((6, 1))
+        coef[:nonzero] = 1.0
+        return ExplicitModel(("x",), ("u",), ["1", "x", "u", "x**2", "x*u", "u**2"], coef, {})
+
+    candidates = {"refined": model(6), "pruned +0.1 %": model(5), "pruned +0.1 % x2": model(3),
+                  "pruned +0.1 % x3": model(2)}
+    # round 2 scores 1.6x round 1 (it dropped a term the records need); round 3, pruned from it,
+    # is within the tolerance of the refined model and would be the sparsest near it
+    scores = {"refined": 0.033, "pruned +0.1 %": 0.030, "pruned +0.1 % x2": 0.048, "pruned +0.1 % x3": 0.040}
+    assert _selected(candidates["refined"], candidates, scores, tolerance=0.5).metadata["selection"][
+        "chosen"] == "pruned +0.1 % x3"
+    selection = _selected(candidates["refined"], candidates, scores, tolerance=0.5, round_rise=0.35).metadata[
+        "selection"]
+    assert selection["chosen"] == "pruned +0.1 %"
+    assert selection["lost_rounds"] == ["pruned +0.1 % x2", "pruned +0.1 % x3"] and selection["round_rise"] == 0.35
+    # a round that rose less than that is sound, and so are the rounds after it
+    sound = dict(scores, **{"pruned +0.1 % x2": 0.038})
+    assert _selected(candidates["refined"], candidates, sound, tolerance=0.5, round_rise=0.35).metadata[
+        "selection"]["chosen"] == "pruned +0.1 % x3"
+    # rounds are judged within their own start's family; a round after an unscored (inf) one is not judged
+    families = {"pruned +0.1 %": 1.0, "pruned +0.1 % x2": 1.2, "pruned +0.1 % x3": 2.0,
+                "pruned +0.1 % from distilled": np.inf, "pruned +0.1 % x2 from distilled": 3.0,
+                "pruned +0.1 % x3 from distilled": 3.1, "pruned +0.1 % with growing prior": 1.0,
+                "pruned +0.1 % x2 with growing prior": 1.5, "pruned +0.1 % x3 with growing prior": 1.0}
+    assert _lost_rounds(families, 0.35) == {"pruned +0.1 % x3", "pruned +0.1 % x2 with growing prior",
+                                           "pruned +0.1 % x3 with growing prior"}
+    assert _lost_rounds(families, np.inf) == set()
 
 
 def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():

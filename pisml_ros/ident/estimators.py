@@ -279,7 +279,7 @@ def _selection_warnings(chosen: str, scores: dict, hold: float, misfits: dict, p
 
 def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0,
               verdicts: dict | None = None, unstable_rate: float = np.inf, hold: float = np.inf,
-              equilibrium_grid=()) -> ExplicitModel:
+              equilibrium_grid=(), round_rise: float = np.inf) -> ExplicitModel:
     """The candidate with the smallest free-run error in ``scores`` (training records, and the
     small-signal records where a fit has them), with ``template``'s metadata and the selection.
 
@@ -300,7 +300,10 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     barely tell them apart from the best, a term the data cannot support is a liability out of
     distribution, and dropping terms must not flip a slow mode the 40 ms records hardly pin.
     (Where another candidate wins, pruning is not considered: on noisy data a refinement that
-    lost should not come back through a tolerance.) ``verdicts``: a cache shared across calls.
+    lost should not come back through a tolerance.) A prune round whose score rose above
+    (1 + ``round_rise``) × the round before it, and the rounds after it, are not taken as that
+    sparser model (:func:`_lost_rounds`; the metadata's ``lost_rounds``).
+    ``verdicts``: a cache shared across calls.
     Candidates that reproduce the records worse than holding their first states (``hold``,
     :func:`hold_error`) are no models and do not compete (unless none does better, when the best
     score wins, consistent with the rest points or not): on the demo's
@@ -333,7 +336,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     # and a pruning collapsed to one term per equation, 289 % against 53 %, consistent at all of
     # them, took 70 / 87 % IOD / OOD against the best score's 9.1 / 11.8 %): the best score wins
     eligible = [name for name in finite if misfits[name] == min(misfits.values())] if models else finite
-    chosen = _chosen_among(eligible, candidates, scores, tolerance, points, verdicts)
+    lost = _lost_rounds(scores, round_rise)
+    chosen = _chosen_among(eligible, candidates, scores, tolerance, points, verdicts, lost=lost)
     grid_inputs = _grid_inputs(template, equilibrium_grid)
     missing = {}
     # only among models: where none beats the hold the best score stands, as above (20 dB, stop 41:
@@ -344,7 +348,7 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
         fewest = min(missing.values())
         if fewest < missing[chosen]:
             chosen = _chosen_among([name for name in eligible if missing[name] == fewest], candidates, scores,
-                                   tolerance, points, verdicts, competing=eligible)
+                                   tolerance, points, verdicts, competing=eligible, lost=lost)
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
     # what P0 in its terms' (Pf - P0) is; how far the data pin its coefficients
@@ -354,7 +358,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     missing_at = _without_equilibrium(chosen, candidates, points, grid_inputs, verdicts) if grid_inputs else []
     model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores),
                                    "nonzero": {name: int(c.n_parameters) for name, c in candidates.items()},
-                                   "tolerance": tolerance, "inconsistent_rest_points": misfits,
+                                   "tolerance": tolerance, "round_rise": round_rise, "lost_rounds": sorted(lost),
+                                   "inconsistent_rest_points": misfits,
                                    "unstable_rate": unstable_rate,
                                    "smallsignal_unstable_rate": 0.0 if np.isfinite(unstable_rate) else unstable_rate,
                                    "hold_error_pct": hold,
@@ -365,11 +370,12 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
 
 
 def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: float, points: list,
-                  verdicts: dict, competing: list | None = None) -> str:
+                  verdicts: dict, competing: list | None = None, lost=frozenset()) -> str:
     """The name :func:`_selected` chooses among the ``eligible`` candidates: the best score, or the
-    sparsest pruned model of its refinement family near it. ``competing`` (default ``eligible``):
-    the candidates the selection let compete, of which ``eligible`` may be a subset; the refined
-    model's score is the tolerance's yardstick where it is among them."""
+    sparsest pruned model of its refinement family near it (not one of the ``lost`` prune rounds,
+    :func:`_lost_rounds`). ``competing`` (default ``eligible``): the candidates the selection let
+    compete, of which ``eligible`` may be a subset; the refined model's score is the tolerance's
+    yardstick where it is among them."""
     best = min(eligible, key=lambda name: scores[name])
     chosen = best
     family = _refinement_family(best)
@@ -383,7 +389,7 @@ def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: flo
         competing = eligible if competing is None else competing
         reference = max(scores[best], scores[refined_name]) if refined_name in competing else scores[best]
         near = [name for name in eligible if name.startswith("pruned") and _refinement_family(name) == family
-                and scores[name] <= reference * (1 + tolerance)]
+                and scores[name] <= reference * (1 + tolerance) and name not in lost]
         # the refined model's verdicts, not "stable": a record can start at a weakly unstable
         # equilibrium that 40 ms do not reveal (protocol ug0 up to 1.2, plant boundary 1.166, max
         # Re +0.25 1/s at 1.2): preferring models stable there favours a boundary in the wrong place
@@ -690,7 +696,7 @@ def _configured_selection(template: ExplicitModel, candidates: dict, scores: dic
     return _selected(template, candidates, scores,
                      tolerance=cfg.selection_tolerance if tolerance is None else tolerance, verdicts=verdicts,
                      unstable_rate=cfg.selection_unstable_rate, hold=hold,
-                     equilibrium_grid=cfg.selection_equilibrium_grid)
+                     equilibrium_grid=cfg.selection_equilibrium_grid, round_rise=cfg.selection_round_rise)
 
 
 def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
@@ -778,6 +784,38 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
 
 class _StoppedBeside(Exception):
     """Raised in a job of :func:`_side_by_side` when another job failed or the run was cancelled."""
+
+
+_PRUNE_ROUND = re.compile(r"^pruned \+(?P<budget>\S+) %(?: x(?P<round>\d+))?(?P<start>.*)$")
+
+
+def _lost_rounds(scores: dict, rise: float) -> set:
+    """The prune rounds among the ``scores``' names (``pruned +B % xR`` + the start's suffix, R ≥ 2;
+    ``pruned +B %`` is round 1) whose free-run error is above (1 + ``rise``) × the round before
+    theirs, and every later round of the same start (built on the lost one).
+
+    Each round drops the terms whose removal its shooting windows' quadratic cost model prices at
+    +0.1 % (``IdentConfig.refine_prune_budgets``); a round that then reproduces the records run
+    freely much worse than the round before dropped a term they need, and what the later rounds
+    prune and polish from it carries the loss (``IdentConfig.selection_round_rise``). A round
+    whose predecessor has no finite score is not judged.
+    """
+    lost: set = set()
+    if not rise < np.inf:
+        return lost
+    for name in scores:
+        match = _PRUNE_ROUND.match(name)
+        if match is None or match["round"] is None:
+            continue
+        budget, start = match["budget"], match["start"]
+        for k in range(2, int(match["round"]) + 1):
+            this = f"pruned +{budget} % x{k}{start}"
+            before = f"pruned +{budget} %" + (f" x{k - 1}" if k > 2 else "") + start
+            if this in scores and np.isfinite(scores.get(before, np.inf)) \
+                    and not scores[this] <= (1 + rise) * scores[before]:
+                lost.add(name)
+                break
+    return lost
 
 
 def _refinement_family(name: str) -> str | None:
