@@ -340,7 +340,8 @@ class IdentConfig:
     # family (recording 7; 1.043 and 1.025 on recordings 9 and 8), and below that a less pruned one
     # wins (recording 7: 0.46 / 1.02 % with 109 coefficients, or 0.41 / 1.02 % with 134, instead of
     # 0.57 / 0.84 % with 89). The window that serves both is set by one recording on each side: not
-    # a setting to tune on
+    # a setting to tune on. (Stop 42: that 20 kHz row's round 2 had lost the fit, and
+    # selection_round_rise now passes its rounds 2 and 3 over.)
     selection_tolerance: float = 0.5
     # a prune round (``pruned +B % xR``) whose free-run error on the scoring records rises above
     # (1 + this) x the round before it is lost, and so are the rounds built on it: none of them is
@@ -465,7 +466,7 @@ class IdentConfig:
             raise ConfigError(f"identification config: refine_max_step must be 0 (off) or at least 1e-7 s, got "
                               f"{self.refine_max_step}")
         for key in ("refine_rescue_ratio", "refine_rescue_stability_weight", "selection_round_rise"):
-            if not getattr(self, key) >= 0:  # also NaN (no rescue, every prune round lost), unseen
+            if not getattr(self, key) >= 0:  # also NaN, which would switch the rescue or the rule off unseen
                 raise ConfigError(f"identification config: {key} must be >= 0 (inf: off), got {getattr(self, key)}")
         if not 0 <= self.dropout < 1:
             raise ConfigError(f"identification config: dropout must be in [0, 1), got {self.dropout}")
