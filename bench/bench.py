@@ -273,6 +273,9 @@ def selection_record(model):
                                                "noise_floor_pct": finite(rescue["noise_floor_pct"])}}
     return {"selection": {**rescue, "chosen": selection["chosen"], "tolerance": finite(selection.get("tolerance")),
                           "hold_error_pct": finite(selection.get("hold_error_pct")),
+                          # since stop 42: the prune rounds that lost the fit (estimators._lost_rounds)
+                          "round_rise": finite(selection.get("round_rise")),
+                          "lost_rounds": list(selection.get("lost_rounds") or []),
                           "training_error_pct": {k: finite(v) for k, v in selection["training_error_pct"].items()},
                           "nonzero": {k: int(v) for k, v in selection["nonzero"].items()},
                           "inconsistent_rest_points": {k: int(v) for k, v in

@@ -1066,6 +1066,15 @@ def test_selection_passes_over_a_prune_round_that_lost_the_fit_and_the_rounds_af
     assert _lost_rounds(families, 0.35) == {"pruned +0.1 % x3", "pruned +0.1 % x2 with growing prior",
                                            "pruned +0.1 % x3 with growing prior"}
     assert _lost_rounds(families, np.inf) == set()
+    # a round whose free run blew up is lost too
+    assert _lost_rounds({"pruned +0.1 %": 1.0, "pruned +0.1 % x2": np.inf}, 0.35) == {"pruned +0.1 % x2"}
+    # a lost round that scores best of all still wins: the rule keeps lost rounds from standing in
+    # for the best, not the best from winning (here round 3 recovered below round 1 after round 2
+    # had lost the fit; without the exception round 1, at twice the best score, would be taken)
+    recovered = {"refined": 0.090, "pruned +0.1 %": 0.030, "pruned +0.1 % x2": 0.045, "pruned +0.1 % x3": 0.015}
+    selection = _selected(candidates["refined"], candidates, recovered, tolerance=0.5, round_rise=0.35).metadata[
+        "selection"]
+    assert selection["chosen"] == "pruned +0.1 % x3" and "pruned +0.1 % x3" in selection["lost_rounds"]
 
 
 def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():

@@ -345,12 +345,14 @@ class IdentConfig:
     selection_tolerance: float = 0.5
     # a prune round (``pruned +B % xR``) whose free-run error on the scoring records rises above
     # (1 + this) x the round before it is lost, and so are the rounds built on it: none of them is
-    # taken as the sparser model near the best (estimators._lost_rounds); inf: off. Why: each round
+    # taken as the sparser model near the best, unless it is the best (estimators._lost_rounds);
+    # inf: off. Why: each round
     # drops what its shooting windows' quadratic cost model says costs +0.1 % (scaled by the
     # samples), and where a free run over the whole records then loses much more, the pruning
-    # dropped a term the records need. Measured (stop 42, the recorded selections of every 40 dB
-    # row of bench/results.json, scenarios_results.json and plants_results.json, 38 fits): the
-    # round-to-round ratio is 0.55-1.26 where nothing went wrong; above, 1.40-3.03 on nine families.
+    # dropped a term the records need. Measured (stop 42, the recorded selections of the 38 40 dB
+    # PISML fits, with and without the Jacobian loss, of bench/results.json, scenarios_results.json
+    # and plants_results.json): the round-to-round ratio is 0.34-1.26 (85 rounds) where nothing went
+    # wrong, 1.40-4.89 where a round lost the fit (8 families of 7 fits; never the best candidate).
     # Only one chosen model changes at any setting in 0.26-0.57: the scenarios' 20 kHz seed 0 had
     # x2 at 1.58x x1 (IOD 3.14 %, the d-axis grid current 7.9 % off after the phase jump) and chose
     # x3 (2.14 against 1.77 %, within the tolerance: 1.88 / 0.266 % IOD / OOD, 82 coefficients);

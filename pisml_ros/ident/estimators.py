@@ -302,7 +302,7 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     (Where another candidate wins, pruning is not considered: on noisy data a refinement that
     lost should not come back through a tolerance.) A prune round whose score rose above
     (1 + ``round_rise``) × the round before it, and the rounds after it, are not taken as that
-    sparser model (:func:`_lost_rounds`; the metadata's ``lost_rounds``).
+    sparser model unless one is the best itself (:func:`_lost_rounds`; the metadata's ``lost_rounds``).
     ``verdicts``: a cache shared across calls.
     Candidates that reproduce the records worse than holding their first states (``hold``,
     :func:`hold_error`) are no models and do not compete (unless none does better, when the best
@@ -373,7 +373,8 @@ def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: flo
                   verdicts: dict, competing: list | None = None, lost=frozenset()) -> str:
     """The name :func:`_selected` chooses among the ``eligible`` candidates: the best score, or the
     sparsest pruned model of its refinement family near it (not one of the ``lost`` prune rounds,
-    :func:`_lost_rounds`). ``competing`` (default ``eligible``): the candidates the selection let
+    :func:`_lost_rounds`, unless it is the best itself: the rule keeps a lost round from standing in
+    for the best, not the best from winning). ``competing`` (default ``eligible``): the candidates the selection let
     compete, of which ``eligible`` may be a subset; the refined model's score is the tolerance's
     yardstick where it is among them."""
     best = min(eligible, key=lambda name: scores[name])
@@ -389,7 +390,7 @@ def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: flo
         competing = eligible if competing is None else competing
         reference = max(scores[best], scores[refined_name]) if refined_name in competing else scores[best]
         near = [name for name in eligible if name.startswith("pruned") and _refinement_family(name) == family
-                and scores[name] <= reference * (1 + tolerance) and name not in lost]
+                and scores[name] <= reference * (1 + tolerance) and (name not in lost or name == best)]
         # the refined model's verdicts, not "stable": a record can start at a weakly unstable
         # equilibrium that 40 ms do not reveal (protocol ug0 up to 1.2, plant boundary 1.166, max
         # Re +0.25 1/s at 1.2): preferring models stable there favours a boundary in the wrong place
@@ -798,7 +799,8 @@ def _lost_rounds(scores: dict, rise: float) -> set:
     +0.1 % (``IdentConfig.refine_prune_budgets``); a round that then reproduces the records run
     freely much worse than the round before dropped a term they need, and what the later rounds
     prune and polish from it carries the loss (``IdentConfig.selection_round_rise``). A round
-    whose predecessor has no finite score is not judged.
+    whose predecessor has no finite score is not judged; one that itself has none (its free run
+    blew up) is lost.
     """
     lost: set = set()
     if not rise < np.inf:
