@@ -39,7 +39,7 @@ bench-quick: env
 bench-gap: env
 	$(PY) bench/gap_bench.py --quick
 
-# PISML and Mod-SINDy on the default inverter and two with other parameters, clean and 40 dB, recordings 0-2 (~11-13 min on 2 cores at stops 34-37):
+# PISML and Mod-SINDy on the default inverter and two with other parameters, clean and 40 dB, recordings 0-2 (~11-13 min on 2 cores at stops 34-37, 11 at stop 42):
 # bench/plants_results.json, bench/PLANTS_RESULTS.md
 bench-plants: env
 	$(PY) bench/plants_bench.py
