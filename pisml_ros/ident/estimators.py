@@ -787,7 +787,14 @@ class _StoppedBeside(Exception):
     """Raised in a job of :func:`_side_by_side` when another job failed or the run was cancelled."""
 
 
+# the names of the pruned candidates: "pruned +B %" (round 1, or a one-stage budget), "pruned +B % xR"
+# (the R-th prune round), then the refinement start's suffix
 _PRUNE_ROUND = re.compile(r"^pruned \+(?P<budget>\S+) %(?: x(?P<round>\d+))?(?P<start>.*)$")
+
+
+def _prune_round_name(budget: str, round_: int, start: str = "") -> str:
+    """The candidate name of prune round ``round_`` at budget ``budget`` (%, as written) of a start."""
+    return f"pruned +{budget} %" + ("" if round_ == 1 else f" x{round_}") + start
 
 
 def _lost_rounds(scores: dict, rise: float) -> set:
@@ -811,8 +818,7 @@ def _lost_rounds(scores: dict, rise: float) -> set:
             continue
         budget, start = match["budget"], match["start"]
         for k in range(2, int(match["round"]) + 1):
-            this = f"pruned +{budget} % x{k}{start}"
-            before = f"pruned +{budget} %" + (f" x{k - 1}" if k > 2 else "") + start
+            this, before = _prune_round_name(budget, k, start), _prune_round_name(budget, k - 1, start)
             if this in scores and np.isfinite(scores.get(before, np.inf)) \
                     and not scores[this] <= (1 + rise) * scores[before]:
                 lost.add(name)
@@ -825,10 +831,8 @@ def _refinement_family(name: str) -> str | None:
     + suffix``), None for other candidates."""
     if name.startswith("refined"):
         return name[len("refined"):]
-    if name.startswith("pruned +"):
-        # "pruned +B %", "pruned +B % xR" (R-th prune round), then the start's suffix
-        return re.sub(r"^ x\d+", "", name[name.index("%") + 1:])
-    return None
+    match = _PRUNE_ROUND.match(name)
+    return None if match is None else match["start"]
 
 
 def _stability_anchors(train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig) -> list:
@@ -1330,7 +1334,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                    "polish_evaluations": used[0] - polish_used, "polish_seconds": time.monotonic() - polish_started,
                    "rk4_substeps": sorted(substeps_used or ())}
         # named by the nominal budget: the same names whatever the records' length
-        name = f"pruned +{100 * cfg.refine_prune_budgets[0]:g} %" + ("" if round_ == 1 else f" x{round_}")
+        name = _prune_round_name(f"{100 * cfg.refine_prune_budgets[0]:g}", round_)
         out[name] = ExplicitModel(model.state_names, model.input_names, model.terms,
                                   coef if polished is None else polished.coefficients,
                                   {**meta, "pruning": pruning, **_with_covariance(polished)})
