@@ -276,6 +276,9 @@ def selection_record(model):
                           # since stop 42: the prune rounds that lost the fit (estimators._lost_rounds)
                           "round_rise": finite(selection.get("round_rise")),
                           "lost_rounds": list(selection.get("lost_rounds") or []),
+                          # since stop 43: sparser models passed over for turning the best's "stable"
+                          # into "unstable" at a grid voltage (estimators._chosen_among)
+                          "turned_unstable": {k: list(v) for k, v in (selection.get("turned_unstable") or {}).items()},
                           "training_error_pct": {k: finite(v) for k, v in selection["training_error_pct"].items()},
                           "nonzero": {k: int(v) for k, v in selection["nonzero"].items()},
                           "inconsistent_rest_points": {k: int(v) for k, v in

@@ -75,6 +75,7 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
     with pytest.raises(ConfigError, match="refine_rescue_ratio must be >= 0"):
         IdentConfig.from_mapping({"refine_rescue_ratio": "nan"})
     assert IdentConfig.from_mapping({"refine_rescue_ratio": "inf"}).refine_rescue_ratio == math.inf
+    assert IdentConfig.from_mapping({"selection_grid_stability": "false"}).selection_grid_stability is False
     with pytest.raises(ConfigError, match="selection_round_rise must be >= 0"):
         IdentConfig.from_mapping({"selection_round_rise": "nan"})
     with pytest.raises(ConfigError, match="selection_round_rise must be >= 0"):
@@ -973,6 +974,40 @@ def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
                      hold=0.01).metadata["selection"]["chosen"] == "pruned +0.1 % x3"
     assert _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0, equilibrium_grid=grid,
                      hold=0.05).metadata["selection"]["chosen"] == "pruned +0.1 %"
+
+
+def test_selection_does_not_take_a_sparser_model_unstable_where_the_best_is_stable():
+    from pisml_ros.ident.estimators import _selected
+
+    # x' = 1 - x; y' = k·y + (ug-dependent part): the equilibrium y = 0 at every grid voltage.
+    # "flips": y' = (0.5 - ug)·y, stable at the rest points (ug 0.8, 1.0) but unstable below ug 0.5
+    # (stop 43: a 40 dB fit's sparser model unstable at ug 0.2 and 0.4, the plant stable there);
+    # "stable": y' = -y + 0.1·(x - 1), stable everywhere, one coefficient more
+    terms = ["1", "x", "y", "ug*y"]
+
+    def model(y_column):
+        return ExplicitModel(("x", "y"), ("ug", "theta_g"), terms, np.column_stack([[1.0, -1, 0, 0], y_column]), {})
+
+    flips, stable = model([0, 0, 0.5, -1]), model([-0.1, 0.1, -1, 0])
+    points = [{"inputs": [0.8, 0.0], "state": [1.0, 0.0]}, {"inputs": [1.0, 0.0], "state": [1.0, 0.0]}]
+    template = ExplicitModel(("x", "y"), ("ug", "theta_g"), terms, np.zeros((4, 2)), {"reference_points": points})
+    grid = (0.2, 0.4, 0.6, 0.8, 1.0)
+    candidates = {"pruned +0.1 %": stable, "pruned +0.1 % x2": flips, "refined": stable}
+    scores = {"pruned +0.1 %": 0.020, "pruned +0.1 % x2": 0.021, "refined": float("inf")}
+
+    def chosen(**options):
+        return _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0, equilibrium_grid=grid,
+                         **options).metadata["selection"]
+
+    # without the check the sparser model wins by the tolerance (it has every equilibrium)
+    assert chosen()["chosen"] == "pruned +0.1 % x2" and chosen()["turned_unstable"] == {}
+    selection = chosen(grid_stability=True)
+    assert selection["chosen"] == "pruned +0.1 %" and selection["grid_stability"] is True
+    assert selection["turned_unstable"] == {"pruned +0.1 % x2": [0.2, 0.4]}
+    # only that direction: a sparser model stable where the best is unstable is taken
+    candidates.update({"pruned +0.1 %": model([-0.1, 0.1, 0.5, -1]), "pruned +0.1 % x2": model([0, 0, -1, 0])})
+    selection = chosen(grid_stability=True)
+    assert selection["chosen"] == "pruned +0.1 % x2" and selection["turned_unstable"] == {}
 
 
 def test_selection_records_in_words_what_is_wrong_with_the_chosen_model():
