@@ -976,7 +976,7 @@ def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
                      hold=0.05).metadata["selection"]["chosen"] == "pruned +0.1 %"
 
 
-def test_selection_does_not_take_a_sparser_model_unstable_where_the_best_is_stable():
+def test_the_grid_stability_option_passes_over_a_sparser_model_unstable_where_the_best_is_stable():
     from pisml_ros.ident.estimators import _selected
 
     # x' = 1 - x; y' = k·y + (ug-dependent part): the equilibrium y = 0 at every grid voltage.

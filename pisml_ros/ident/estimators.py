@@ -410,19 +410,12 @@ def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: flo
     compete, of which ``eligible`` may be a subset; the refined model's score is the tolerance's
     yardstick where it is among them.
 
-    Nor is a sparser model taken that is unstable at one of the grid voltages ``grid_inputs`` where
-    the best is stable (:func:`_turned_unstable`; ``passed`` collects those passed over, name ->
-    grid indices): the data rank it no better than the best, and what its pruning dropped decided
-    the analysis' verdict out there, where the records say nothing. Measured (stop 43, 40 dB,
-    protocol recording seed 14, not one of the benchmark's ten): the grid rule of
-    :func:`_selected` took "pruned +0.1 % x2" (111 coefficients, 1.04x the best's score), unstable
-    at ug 0.2 and 0.4 (+0.30 and +0.12 1/s; the plant -0.22 and -0.31), 0.325 / 1.129 % IOD /
-    OOD; with the rule the best, "pruned +0.1 %" (135), stable at every grid voltage,
-    0.305 / 1.068 %. Only the sign is asked, and only in that direction: at ug 1.2, where the plant
-    is weakly unstable (+0.25 1/s), the models' verdicts go either way, and on the 20 candidate
-    tables replayed (the ten benchmark recordings, seeds 10-15 and four scenario fits) a rule both
-    ways would have changed three choices for the worse (20 kHz seed 1: 0.190 / 3.66 % instead of
-    0.328 / 0.944 %); this one changes seed 14's alone."""
+    With ``grid_inputs`` (:func:`_selected`'s ``grid_stability``, off by default) a sparser model
+    is not taken where it is unstable at one of those grid voltages and the best is stable there
+    (:func:`_turned_unstable`; ``passed`` collects those passed over, name -> grid indices). Measured
+    at stop 43 (``IdentConfig.selection_grid_stability``): it mended one 40 dB fit (protocol seed
+    14: unstable at ug 0.2 and 0.4 where the plant is stable) and broke another (the scenarios'
+    ug0 0.6-1.0 seed 1, whose sparser rounds were unstable at ug 1.2 as the plant is)."""
     best = min(eligible, key=lambda name: scores[name])
     chosen = best
     family = _refinement_family(best)
