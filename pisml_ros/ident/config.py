@@ -296,7 +296,12 @@ class IdentConfig:
     # 0.38 / 1.82; 0.03: recording 2 0.81 / 1.49. Stop 28 (the current engine, recordings 0-4, IOD /
     # OOD %, operating-point ΔQ p.u. as bench.operating_point_errors): 0.1: 0.34 / 1.40, 0.73 / 3.04,
     # 0.61 / 0.96 (spurious at ug 0.2), 0.35 / 1.21, 0.21 / 0.72; ΔQ 0.002, 0.030, 0.040, 0.060,
-    # 0.002 (0.01: 0.051, 0.012, 0.036, 0.048, 0.035)
+    # 0.002 (0.01: 0.051, 0.012, 0.036, 0.048, 0.035). Stop 43 (the current engine, bench/candidates.py,
+    # recordings 0 / 2 / 5 / 6 / 7; default 0.158 / 0.438, 0.412 / 0.456, 0.575 / 0.604, 0.519 / 0.642,
+    # 0.567 / 0.836): 0.1: 0.380 / 0.657, 0.835 / 0.529, 0.477 / 0.556, 0.605 / 1.42, 0.311 / 0.584
+    # (3 of 5 within both targets against 2; different ones). Why it was tried: on the near misses
+    # 5-7 the IOD error is a slow drift from the test's start, the plant's equilibrium at ug 1.0,
+    # where the models' f is not zero (README, "Where the near misses' IOD comes from")
     refine_equilibrium_weight: float = 0.01
     # on noisy data, the polish's equilibrium prior in states instead (0: as in the other stages): at
     # each rest state the distance to the model's equilibrium next to it (J⁻¹f, a Newton step) in
