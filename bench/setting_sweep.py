@@ -1,0 +1,253 @@
+"""Measure an identification setting over many recordings and compare it with another, row by row.
+
+Every engine option in ``pisml_ros/ident/config.py`` was measured on a handful of 40 dB recordings
+with scratch scripts that were lost with each machine, so every stop re-measured the default first.
+This keeps the per-recording rows in the repository (``bench/sweeps/*.json``): the chosen model's
+IOD / OOD error on the protocol's test records, its spectrum at ug 0.8 against the plant's, spurious
+unstable modes over ug 0.2-1.1, its size, and the fit's time. A change is then compared with the
+same recordings' rows, and the summary counts what the issue's 40 dB targets ask of each
+recording (IOD <= 0.5 %, OOD <= 1.0 %, no spurious unstable mode, compression >= 250x).
+
+    .venv/bin/python bench/setting_sweep.py run --name ridge-1e-4 --set refine_ridge_weight=0.0001 \\
+        [--seeds 0-15] [--scenario protocol] [--noise 40]      # ~1-1.5 min a recording on 2 cores
+    .venv/bin/python bench/setting_sweep.py compare bench/sweeps/default.json bench/sweeps/ridge-1e-4.json
+    .venv/bin/python bench/setting_sweep.py import --name NAME FILE...   # bench/candidates.py --out files
+
+``run`` writes ``bench/sweeps/NAME.json`` after every recording and skips the recordings already
+in it, so an interrupted sweep goes on where it stopped. Recordings 0-9 of the protocol are
+``make bench``'s ten 40 dB recordings; the engine was tuned on those, not on 10-15.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+BENCH = Path(__file__).resolve().parent
+sys.path[:0] = [str(BENCH), str(BENCH.parent)]
+SWEEPS = BENCH / "sweeps"
+
+# the issue's 40 dB targets for one recording
+IOD_TARGET, OOD_TARGET, COMPRESSION_TARGET = 0.5, 1.0, 250.0
+# the default hybrid (the paper's MLP, 20 749 parameters, plus a backbone of ~300) over 250: what
+# a row without the hybrid's count (an imported one) is held to
+COEFFICIENTS_FOR_TARGET = 84
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"0-3,7"`` -> ``[0, 1, 2, 3, 7]``."""
+    seeds: list[int] = []
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        low, sep, high = part.partition("-")
+        try:
+            seeds += list(range(int(low), int(high) + 1)) if sep else [int(low)]
+        except ValueError:
+            raise ValueError(f"--seeds {text!r}: expected numbers and ranges such as 0-15,20") from None
+    return sorted(set(seeds))
+
+
+def meets(row: dict) -> dict:
+    """Which of the issue's 40 dB targets one recording's row meets (``None``: not measured)."""
+    finite = row.get("iod") is not None and row.get("ood") is not None
+    accuracy = finite and row["iod"] <= IOD_TARGET and row["ood"] <= OOD_TARGET
+    if row.get("hybrid_parameters"):
+        compressed = row["hybrid_parameters"] / row["coefficients"] >= COMPRESSION_TARGET
+    else:
+        compressed = row["coefficients"] <= COEFFICIENTS_FOR_TARGET
+    return {"accuracy": bool(accuracy), "no_spurious": not row.get("spurious"),
+            "compression": bool(compressed), "all": bool(accuracy and not row.get("spurious") and compressed)}
+
+
+def summary(rows: list[dict]) -> dict:
+    """Counts of recordings meeting each target, and the spread of the errors and sizes."""
+    verdicts = [meets(r) for r in rows]
+    iod = [r["iod"] if r.get("iod") is not None else np.inf for r in rows]
+    ood = [r["ood"] if r.get("ood") is not None else np.inf for r in rows]
+    out = {"recordings": len(rows),
+           "accuracy_and_no_spurious": sum(v["accuracy"] and v["no_spurious"] for v in verdicts),
+           "spurious": sum(not v["no_spurious"] for v in verdicts),
+           "compression": sum(v["compression"] for v in verdicts),
+           "all_targets": sum(v["all"] for v in verdicts)}
+    if rows:
+        out.update(iod_median=float(np.median(iod)), iod_worst=float(np.max(iod)),
+                   ood_median=float(np.median(ood)), ood_worst=float(np.max(ood)),
+                   coefficients_median=float(np.median([r["coefficients"] for r in rows])))
+        times = [r["seconds"] for r in rows if r.get("seconds") is not None]
+        if times:
+            out.update(seconds_median=float(np.median(times)), seconds_worst=float(np.max(times)))
+    return out
+
+
+def load(path: Path) -> dict:
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise SystemExit(f"setting_sweep: cannot read {path}: {err}") from None
+    if not isinstance(data.get("rows"), dict):
+        raise SystemExit(f"setting_sweep: {path}: no 'rows' (not a sweep file)")
+    return data
+
+
+def save(path: Path, data: dict) -> None:
+    ordered = dict(sorted(data["rows"].items(), key=lambda kv: int(kv[0])))
+    data = {**data, "rows": ordered, "summary": summary(list(ordered.values()))}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    tmp.replace(path)  # a sweep interrupted mid-write keeps its last complete file
+
+
+def scored_row(model, plant, test, grid, truth) -> dict:
+    """The chosen model's figures on the protocol's test records (as ``make bench`` scores them)."""
+    from bench import finite, spectra, spurious_points
+
+    from pisml_ros.analysis.metrics import protocol_errors, spectrum_wasserstein
+
+    try:
+        errors = protocol_errors(model, test)
+    except Exception:  # a model that cannot be simulated is a result here
+        errors = {"iod": float("nan"), "ood": float("nan")}
+    found = spectra(model, grid)
+    w = spectrum_wasserstein(found[0.8], truth[0.8]) if found.get(0.8) is not None else float("nan")
+    return {"iod": finite(errors["iod"]), "ood": finite(errors["ood"]), "w_ug08": finite(w),
+            "spurious": spurious_points(found, truth), "coefficients": int(model.n_parameters)}
+
+
+def run(args) -> int:
+    from bench import make_estimator, plant_grid
+    from scenarios_bench import SCENARIOS, scenario_datasets
+
+    from pisml_ros.ident import IdentConfig
+
+    if args.scenario not in SCENARIOS:
+        raise SystemExit(f"setting_sweep: --scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
+    settings = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"setting_sweep: --set {item!r}: expected KEY=VALUE")
+        settings[key.strip()] = value.strip()
+    config = IdentConfig.load(None, settings)  # a bad key or value stops here, before any fit
+    snr = None if args.noise == "clean" else float(args.noise)
+    path = Path(args.out) if args.out else SWEEPS / f"{args.name}.json"
+    data = load(path) if path.exists() else {"name": args.name, "rows": {}}
+    header = {"scenario": args.scenario, "noise": args.noise, "settings": settings}
+    if data.get("settings") is not None and {k: data.get(k) for k in header} != header:
+        raise SystemExit(f"setting_sweep: {path} holds another sweep ({ {k: data.get(k) for k in header} }); "
+                         f"give another --name or --out")
+    data.update(header)
+    for seed in parse_seeds(args.seeds):
+        if str(seed) in data["rows"]:
+            continue
+        plant, train, small, test = scenario_datasets(SCENARIOS[args.scenario], snr, seed)
+        grid = plant_grid(plant)
+        truth = {g: plant.eigenvalues(g, 0.0) for g in grid}
+        started = time.monotonic()
+        est = make_estimator("pisml", config).fit(train, small)
+        seconds = time.monotonic() - started
+        row = scored_row(est.model_, plant, test, grid, truth)
+        row.update(chosen=est.model_.metadata.get("selection", {}).get("chosen"), seconds=round(seconds, 1),
+                   hybrid_parameters=int(est.metrics_.get("hybrid_parameters") or 0) or None)
+        data["rows"][str(seed)] = row
+        save(path, data)
+        print(f"seed {seed}: {format_row(row)}", flush=True)
+    print(format_summary(load(path)))
+    return 0
+
+
+def import_tables(args) -> int:
+    """Rows from ``bench/candidates.py --out`` files (their chosen candidate), as ``run`` writes them."""
+    path = Path(args.out) if args.out else SWEEPS / f"{args.name}.json"
+    data = {"name": args.name, "rows": {}, "imported_from": "bench/candidates.py"}
+    for name in args.files:
+        table = load(Path(name))
+        if "chosen" not in table or table["chosen"] not in table["rows"]:
+            raise SystemExit(f"setting_sweep: {name}: no chosen candidate (not a bench/candidates.py file)")
+        header = {"scenario": table["scenario"], "noise": table["noise"], "settings": table.get("settings", {})}
+        if data.get("settings") is not None and {k: data.get(k) for k in header} != header:
+            raise SystemExit(f"setting_sweep: {name}: another scenario, noise or setting than the files before it")
+        data.update(header)
+        chosen = table["rows"][table["chosen"]]
+        data["rows"][str(table["seed"])] = {
+            "iod": chosen["iod"], "ood": chosen["ood"], "w_ug08": chosen["w_ug08"],
+            "spurious": chosen["spurious"], "coefficients": chosen["coefficients"],
+            "chosen": table["chosen"], "seconds": None, "hybrid_parameters": None}
+    save(path, data)
+    print(format_summary(load(path)))
+    return 0
+
+
+def format_row(row: dict) -> str:
+    def fmt(value):
+        return "—" if value is None else f"{value:.3f}"
+
+    verdict = meets(row)
+    text = (f"{fmt(row.get('iod'))} / {fmt(row.get('ood'))} %, {row['coefficients']} coefficients, "
+            f"W {fmt(row.get('w_ug08'))}, spurious {row.get('spurious') or 'none'}")
+    if row.get("seconds") is not None:
+        text += f", {row['seconds']:.0f} s"
+    if verdict["accuracy"] and verdict["no_spurious"]:
+        text += " [accuracy]"
+    if verdict["compression"]:
+        text += " [compression]"
+    return text
+
+
+def format_summary(data: dict) -> str:
+    s = summary(list(data["rows"].values()))
+    text = (f"{data.get('name')}: {s['recordings']} recordings; IOD/OOD within the targets with no spurious mode "
+            f"{s['accuracy_and_no_spurious']}, spurious {s['spurious']}, compression {s['compression']}, "
+            f"every target {s['all_targets']}")
+    if s["recordings"]:
+        text += (f"; IOD median {s['iod_median']:.3f} worst {s['iod_worst']:.3f} %, OOD median "
+                 f"{s['ood_median']:.3f} worst {s['ood_worst']:.3f} %, coefficients median {s['coefficients_median']:.0f}")
+    if "seconds_median" in s:
+        text += f", time median {s['seconds_median']:.1f} worst {s['seconds_worst']:.1f} s"
+    return text
+
+
+def compare(args) -> int:
+    tables = [load(Path(p)) for p in args.files]
+    common = sorted(set.intersection(*(set(t["rows"]) for t in tables)), key=int)
+    if not common:
+        raise SystemExit("setting_sweep: the files share no recording")
+    for seed in common:
+        print(f"seed {seed:>2}")
+        for t in tables:
+            print(f"   {str(t.get('name'))[:24]:24s} {format_row(t['rows'][seed])}")
+    print(f"over the {len(common)} recordings in every file:")
+    for t in tables:
+        print("  ", format_summary({**t, "rows": {k: t["rows"][k] for k in common}}))
+    return 0
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_run = sub.add_parser("run", help="fit PISML with a setting on each recording and score the chosen model")
+    p_run.add_argument("--name", required=True, help="the sweep's name (bench/sweeps/NAME.json)")
+    p_run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="identification setting, repeatable (as pisml identify --set); none: the default")
+    p_run.add_argument("--seeds", default="0-15", help="recordings, e.g. 0-15 or 0,2,5 (default 0-15)")
+    p_run.add_argument("--scenario", default="protocol", help="a scenario of bench/scenarios_bench.py")
+    p_run.add_argument("--noise", default="40", help="'clean' or an SNR in dB (default 40)")
+    p_run.add_argument("--out", help="the sweep file (default bench/sweeps/NAME.json)")
+    p_run.set_defaults(func=run)
+    p_cmp = sub.add_parser("compare", help="the recordings' rows of sweep files side by side, and their counts")
+    p_cmp.add_argument("files", nargs="+")
+    p_cmp.set_defaults(func=compare)
+    p_imp = sub.add_parser("import", help="a sweep file from bench/candidates.py --out files")
+    p_imp.add_argument("--name", required=True)
+    p_imp.add_argument("--out")
+    p_imp.add_argument("files", nargs="+")
+    p_imp.set_defaults(func=import_tables)
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

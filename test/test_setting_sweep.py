@@ -1,0 +1,57 @@
+"""bench/setting_sweep.py: the per-recording target counts and the sweep files (no fitting here)."""
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import setting_sweep  # noqa: E402
+
+
+def _row(iod, ood, coefficients, spurious=(), hybrid=None):
+    return {"iod": iod, "ood": ood, "coefficients": coefficients, "spurious": list(spurious),
+            "w_ug08": 3.0, "hybrid_parameters": hybrid, "seconds": None, "chosen": "pruned +0.1 % x3"}
+
+
+def test_seeds_parse_ranges_and_reject_words():
+    assert setting_sweep.parse_seeds("0-3,7,2") == [0, 1, 2, 3, 7]
+    with pytest.raises(ValueError, match="--seeds 'a-b'"):
+        setting_sweep.parse_seeds("a-b")
+
+
+def test_a_recording_meets_each_target_on_its_own_figures():
+    good = setting_sweep.meets(_row(0.3, 0.6, 80))
+    assert good == {"accuracy": True, "no_spurious": True, "compression": True, "all": True}
+    # compression from the hybrid's own count where the row has it, else the default hybrid's 84
+    assert setting_sweep.meets(_row(0.3, 0.6, 90, hybrid=21000))["compression"] is False
+    assert setting_sweep.meets(_row(0.3, 0.6, 90, hybrid=30000))["compression"] is True
+    spurious = setting_sweep.meets(_row(0.3, 0.6, 80, spurious=[0.2]))
+    assert spurious["accuracy"] and not spurious["no_spurious"] and not spurious["all"]
+    assert not setting_sweep.meets(_row(None, None, 80))["accuracy"]  # a failed simulation
+    counts = setting_sweep.summary([_row(0.3, 0.6, 80), _row(0.6, 0.6, 120), _row(0.3, 0.6, 90, spurious=[0.4])])
+    assert (counts["accuracy_and_no_spurious"], counts["spurious"], counts["compression"], counts["all_targets"]) \
+        == (1, 1, 1, 1)
+    assert counts["iod_worst"] == 0.6 and counts["coefficients_median"] == 90
+
+
+def test_candidate_tables_import_into_a_sweep_that_compare_reads(tmp_path, capsys):
+    tables = []
+    for seed, (iod, n) in enumerate([(0.2, 78), (0.7, 95)]):
+        path = tmp_path / f"cp{seed}.json"
+        path.write_text(json.dumps({"scenario": "protocol", "seed": seed, "noise": "40", "settings": {},
+                                    "chosen": "pruned +0.1 % x3",
+                                    "rows": {"pruned +0.1 % x3": {"iod": iod, "ood": 0.5, "w_ug08": 4.0,
+                                                                  "spurious": [], "coefficients": n}}}))
+        tables.append(str(path))
+    out = tmp_path / "sweeps" / "default.json"
+    assert setting_sweep.main(["import", "--name", "default", "--out", str(out), *tables]) == 0
+    saved = json.loads(out.read_text())
+    assert set(saved["rows"]) == {"0", "1"} and saved["summary"]["all_targets"] == 1
+    assert setting_sweep.main(["compare", str(out), str(out)]) == 0
+    assert "every target 1" in capsys.readouterr().out
+    # another noise level's table does not go into the same sweep
+    other = json.loads(Path(tables[0]).read_text()) | {"noise": "clean", "seed": 5}
+    Path(tables[0]).write_text(json.dumps(other))
+    with pytest.raises(SystemExit, match="another scenario, noise or setting"):
+        setting_sweep.main(["import", "--name", "x", "--out", str(tmp_path / "x.json"), tables[1], tables[0]])
