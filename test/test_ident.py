@@ -575,6 +575,18 @@ def test_ridge_prior_collapses_a_cancelling_pair_of_nearly_collinear_terms():
         np.testing.assert_allclose(coef[1:3], truth[1:], rtol=0.03)
 
 
+def test_the_ridge_prior_holds_on_noisy_records_only():
+    # its measurements were on 40 dB data; clean records pin their coefficients without it
+    from pisml_ros.ident import IdentConfig
+    from pisml_ros.ident.estimators import _ridge_weight
+
+    cfg = IdentConfig(refine_ridge_weight=1e-4)
+    noisy, _ = _oscillator_data(3, lambda rng: [(100, 1.2)], seed=3)
+    clean, _ = _oscillator_data(3, lambda rng: [(100, 1.2)], seed=3, noise=0.0)
+    assert _ridge_weight(noisy, cfg) == 1e-4
+    assert _ridge_weight(clean, cfg) == 0.0
+
+
 def test_verdict_uncertainty_carries_the_coefficient_covariance_to_the_largest_real_part(tmp_path, capsys):
     from pisml_ros.analysis.operating_point import operating_point_report, ug_stability_margin
     from pisml_ros.analysis.uncertainty import coefficient_covariance, covariance_metadata, max_real_std, \

@@ -345,7 +345,15 @@ class IdentConfig:
     # 0.57 / 0.84 (89) / 0.16 / 0.94 (78), 0.21 / 0.26 (107) / 0.65 / 0.17 (78), 0.29 / 0.46 (110) /
     # 0.32 / 0.89 (97): over the ten, 6 within both targets either way (different ones), 84
     # coefficients or fewer (the 250× compression) on 1 against 5, W at ug 0.8 median 5.9
-    # against 3.5; the worst OOD 1.43 against 5.53 %. Not the default
+    # against 3.5; the worst OOD 1.43 against 5.53 %. Not the default. Stop 44 (the current engine,
+    # bench/setting_sweep.py, the rows in bench/sweeps/; recordings 0-15, the engine never tuned on
+    # 10-15; "ok": both 40 dB targets and no spurious mode): default 9 of 16 ok (7 of 0-9, 2 of
+    # 10-15), IOD / OOD median 0.37 / 0.62 %, worst 0.58 / 1.31 %, 84 coefficients or fewer on 1;
+    # 3e-4: 8 of 16 ok, median 0.46 / 0.82 %, worst OOD 5.53 % (recording 4 again), 84 or fewer on 9;
+    # 1e-4: 12 of 16 ok (7 of 0-9, 5 of 10-15), median 0.25 / 0.56 %, 84 or fewer on 7, but worse
+    # tails: recording 0 1.03 / 2.41 % (default 0.16 / 0.44), 6 1.13 / 0.51 (0.52 / 0.64), 9 0.34 /
+    # 1.21 (0.29 / 0.46). On noisy records only (estimators._ridge_weight): every measurement was
+    # at 40 dB, and clean records pin their coefficients without it
     refine_ridge_weight: float = 0.0
     # where the refinement wins the selection, the sparsest pruned candidate whose free-run training
     # error is within this fraction of the refined model's (of the best, where the refined model does

@@ -1015,6 +1015,13 @@ def _noisy(train: Dataset, level: float = 1e-5) -> bool:
     return bool(np.max(estimate_noise_std(train) / np.maximum(spread, 1e-12)) > level)
 
 
+def _ridge_weight(train: Dataset, cfg: IdentConfig) -> float:
+    """The refinement's ridge prior weight (``cfg.refine_ridge_weight``) on noisy records, 0 on clean
+    ones: it is there to drop the pairs of terms that cancel along noisy records, and clean records
+    pin their coefficients without it (its measurements were all on 40 dB data)."""
+    return cfg.refine_ridge_weight if _noisy(train) else 0.0
+
+
 def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: ExplicitModel | None, lambda_pert: float):
     """Build and train a HybridField (backbone optional) with the estimator's config."""
     from .neural import StopRequested, build_modules, resolve_device, train_hybrid
@@ -1236,7 +1243,7 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                             on_evaluation=on_evaluation, keep_going=improving, fit_starts_first=True,
                             lambda_stab=cfg.refine_stability_weight, stability_margin=cfg.refine_stability_margin,
                             stability_records=_stability_anchors(train, smallsignal, cfg),
-                            lambda_eq=cfg.refine_equilibrium_weight, lambda_ridge=cfg.refine_ridge_weight)
+                            lambda_eq=cfg.refine_equilibrium_weight, lambda_ridge=_ridge_weight(train, cfg))
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
         # a refinement that breaks down (a window blowing up) leaves the earlier candidates standing
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
@@ -1295,6 +1302,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     # ones that cost as little to lose (IdentConfig.refine_prune_degree_preference)
     degrees = term_degrees(model.terms, tuple(model.state_names) + tuple(model.input_names))
     order_weights = cfg.refine_prune_degree_preference ** -(degrees - 1.0)
+    ridge_weight = _ridge_weight(train, cfg)
 
     def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0):
         result = None
@@ -1319,7 +1327,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                                     stability_records=_stability_anchors(train, smallsignal, cfg),
                                     lambda_eq=rest_weight or cfg.refine_equilibrium_weight,
                                     equilibrium_space="states" if rest_weight else "rates",
-                                    ftol=cfg.refine_stage_tolerance, lambda_ridge=cfg.refine_ridge_weight)
+                                    ftol=cfg.refine_stage_tolerance, lambda_ridge=ridge_weight)
             except ValueError as err:  # no trajectory as long as the window: stop growing
                 model.metadata.setdefault("refinement_notes", []).append(f"window {window}: {err}")
                 break
