@@ -327,7 +327,7 @@ class IdentConfig:
     # predict the test: over the 16 recordings' sound candidates the equilibria sit 2-560 noise units
     # (rms) from the rest means, and recording 11's, at 2-3 (the plant's 1-3), score 0.57-1.0 % IOD
     refine_rest_weight: float = 0.0
-    # ridge prior of the refinement (every stage, clean and noisy data): each coefficient's share of
+    # ridge prior of the refinement (every stage; noisy data only since stop 44): each coefficient's share of
     # its equation, c_ij·rms(term i)/rms(f_j) over the fitted samples (f: the start model), costs
     # refine_ridge_weight·share²/2 (trajfit.TrajectoryFitter.fit); 0 switches it off. Why tried:
     # at 40 dB the refined rows keep pairs that cancel along the records (delta and sin(delta) at
@@ -360,7 +360,7 @@ class IdentConfig:
     # against 61 s. But on the other inverters (make bench-plants, 40 dB, recordings 0-2) 1e-4 met
     # both targets on 0 of 6 vendor-b / vendor-c recordings against 2 (vendor-b 0.517 / 0.384 with
     # a spurious mode, 0.186 / 2.08, 0.613 / 2.19; vendor-c 0.281 / 1.07, 0.98 / 2.62, 0.60 / 3.07),
-    # and on the scenarios' first five 40 dB rows 1 of 5 against 5 (20 kHz 0.602 / 0.347, 0.372 /
+    # and on the scenarios' first five 40 dB rows 1 of 5 against 4 (20 kHz 0.602 / 0.347, 0.372 /
     # 1.27; 5 kHz seed 0 1.22 / 2.37 with spurious modes). Off again: more compression, less
     # robust off the protocol. On noisy records only (estimators._ridge_weight)
     refine_ridge_weight: float = 0.0
