@@ -284,7 +284,10 @@ def selection_record(model):
                           "inconsistent_rest_points": {k: int(v) for k, v in
                                                        selection["inconsistent_rest_points"].items()},
                           "missing_equilibria": {k: int(v) for k, v in
-                                                 (selection.get("missing_equilibria") or {}).items()}}}
+                                                 (selection.get("missing_equilibria") or {}).items()},
+                          # since stop 45: the cautions in words (estimators._selection_warnings)
+                          "noise_floor_pct": finite(selection.get("noise_floor_pct")),
+                          "warnings": list(selection.get("warnings") or [])}}
 
 
 def fmt(v, digits=3):

@@ -78,6 +78,8 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
     assert IdentConfig.from_mapping({"selection_grid_stability": "false"}).selection_grid_stability is False
     with pytest.raises(ConfigError, match="selection_round_rise must be >= 0"):
         IdentConfig.from_mapping({"selection_round_rise": "nan"})
+    with pytest.raises(ConfigError, match="selection_warn_noise_ratio must be >= 0"):
+        IdentConfig.from_mapping({"selection_warn_noise_ratio": "nan"})
     with pytest.raises(ConfigError, match="selection_round_rise must be >= 0"):
         IdentConfig.from_mapping({"selection_round_rise": -0.1})
     with pytest.raises(ConfigError, match="clean_growing_error must be >= 0"):
@@ -351,6 +353,8 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     rescue = noisy.explicit_model_.metadata["refinement_rescue"]
     scored = noisy.explicit_model_.metadata["selection"]["training_error_pct"]
     assert rescue["run"] and rescue["ratio"] == pytest.approx(rescue["error_pct"] / rescue["noise_floor_pct"])
+    # the selection records the same floor, for its warning on a model far worse than the noise
+    assert noisy.explicit_model_.metadata["selection"]["noise_floor_pct"] == pytest.approx(rescue["noise_floor_pct"])
     # a family of its own: its pruned models are judged against its own refined model
     from pisml_ros.ident.estimators import _refinement_family
 
@@ -1051,6 +1055,23 @@ def test_selection_records_in_words_what_is_wrong_with_the_chosen_model():
     warnings = selection_warnings(_selected(template, {"refined": unstable}, {"refined": 0.02}, unstable_rate=1.0,
                                             hold=0.4))
     assert warnings == [warnings[0]] and warnings[0].startswith("at 2 of the 2 operating points where the records sat")
+    # far worse than the noise explains: above 3x the floor plus 0.5 points (5 kHz seed 1 at 40 dB,
+    # 7.2 % against 1.84 %); the worst sound 40 dB fit scored 2.37x its floor (4.3 %)
+    def far(error, floor):
+        return selection_warnings(_selected(template, {"refined": model(0.0)}, {"refined": error}, unstable_rate=1.0,
+                                            hold=40.0, noise_floor=floor, noise_ratio=3.0, noise_margin=0.5))
+
+    assert far(4.34, 1.83) == []
+    assert far(0.04, 0.0) == []  # clean records: the margin
+    (warning,) = far(7.2, 1.84)
+    assert warning.startswith("the model reproduces the records far worse than their noise explains (free-run "
+                              "error 7.2 % where the noise alone leaves 1.84 %)")
+    (warning,) = far(6.72, 0.0)  # the saturation plant's clean fit
+    assert "6.72 %" in warning
+    assert far(7.2, None) == []  # no floor given: no such check
+    # not as well as the hold's: the hold's warning says it
+    assert len(selection_warnings(_selected(template, {"refined": model(0.0)}, {"refined": 50.0}, unstable_rate=1.0,
+                                            hold=40.0, noise_floor=1.8, noise_ratio=3.0, noise_margin=0.5))) == 1
     # models without a selection (baselines, older files) have none
     assert selection_warnings(model(0.0)) == [] and selection_warnings(None) == []
 

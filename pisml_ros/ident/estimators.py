@@ -273,16 +273,26 @@ def selection_warnings(model) -> list:
 
 
 def _selection_warnings(chosen: str, scores: dict, hold: float, misfits: dict, points: list,
-                        unstable_rate: float, equilibrium_grid, missing_at: list) -> list:
+                        unstable_rate: float, equilibrium_grid, missing_at: list,
+                        noise_floor: float | None = None, noise_ratio: float = np.inf,
+                        noise_margin: float = 0.0) -> list:
     """What a user of the chosen model should know before trusting it, in words: it reproduces the
-    records no better than holding their first states; it contradicts operating points where the
+    records no better than holding their first states; or far worse than their noise explains (its
+    free-run error above ``noise_ratio`` × ``noise_floor`` + ``noise_margin`` percentage points,
+    :func:`~pisml_ros.ident.noise.noise_floor_error`); it contradicts operating points where the
     records sat at rest; it has no equilibrium (so no stability verdict) at some grid voltages.
     Empty for a model with none of these."""
     warnings = []
-    if not scores[chosen] < hold:
+    error = scores[chosen]
+    if not error < hold:
         warnings.append(f"the model reproduces the records no better than holding their first states (free-run "
-                        f"error {scores[chosen]:.3g} % against {hold:.3g} %): the data are too noisy or too short "
+                        f"error {error:.3g} % against {hold:.3g} %): the data are too noisy or too short "
                         f"for the dynamics, and its equations and eigenvalues are not to be trusted")
+    elif noise_floor is not None and not error <= noise_ratio * noise_floor + noise_margin:
+        warnings.append(f"the model reproduces the records far worse than their noise explains (free-run error "
+                        f"{error:.3g} % where the noise alone leaves {noise_floor:.3g} %): it misses part of the "
+                        f"dynamics (a structure its libraries lack, such as a saturation, or records too coarse "
+                        f"or too noisy for them), and its equations and eigenvalues are not to be trusted")
     if misfits.get(chosen):
         warnings.append(f"at {misfits[chosen]} of the {len(points)} operating points where the records sat at rest "
                         f"the model has no equilibrium or one with a mode growing faster than {unstable_rate:g} "
@@ -297,7 +307,9 @@ def _selection_warnings(chosen: str, scores: dict, hold: float, misfits: dict, p
 
 def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0,
               verdicts: dict | None = None, unstable_rate: float = np.inf, hold: float = np.inf,
-              equilibrium_grid=(), round_rise: float = np.inf, grid_stability: bool = False) -> ExplicitModel:
+              equilibrium_grid=(), round_rise: float = np.inf, grid_stability: bool = False,
+              noise_floor: float | None = None, noise_ratio: float = np.inf,
+              noise_margin: float = 0.0) -> ExplicitModel:
     """The candidate with the smallest free-run error in ``scores`` (training records, and the
     small-signal records where a fit has them), with ``template``'s metadata and the selection.
 
@@ -339,8 +351,9 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     model unstable at a grid voltage where the best is stable (:func:`_chosen_among`; the metadata's
     ``turned_unstable``).
 
-    What remains wrong with the choice (no better than the hold, inconsistent rest points, grid
-    voltages without an equilibrium) is recorded in words in ``selection["warnings"]``
+    What remains wrong with the choice (no better than the hold, or far worse than the noise
+    explains where ``noise_floor`` is given: :func:`_selection_warnings`; inconsistent rest points;
+    grid voltages without an equilibrium) is recorded in words in ``selection["warnings"]``
     (:func:`selection_warnings`): `pisml identify` prints them and the identifier node logs them.
     """
     points = template.metadata.get("reference_points") or []
@@ -388,7 +401,7 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                    "inconsistent_rest_points": misfits,
                                    "unstable_rate": unstable_rate,
                                    "smallsignal_unstable_rate": 0.0 if np.isfinite(unstable_rate) else unstable_rate,
-                                   "hold_error_pct": hold,
+                                   "hold_error_pct": hold, "noise_floor_pct": noise_floor,
                                    "equilibrium_grid": list(equilibrium_grid), "missing_equilibria": missing,
                                    "grid_stability": bool(grid_stability),
                                    # sparser models passed over: the grid voltages where each turned
@@ -396,7 +409,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                    "turned_unstable": {name: [float(equilibrium_grid[k]) for k in flipped]
                                                        for name, flipped in passed.items()},
                                    "warnings": _selection_warnings(chosen, scores, hold, misfits, points,
-                                                                   unstable_rate, equilibrium_grid, missing_at)}
+                                                                   unstable_rate, equilibrium_grid, missing_at,
+                                                                   noise_floor, noise_ratio, noise_margin)}
     return model
 
 
@@ -545,6 +559,7 @@ class PISML(_Estimator):
     def fit(self, train: Dataset, smallsignal: Dataset | None = None, callback=None, should_stop=None):
         from .distill import distill_residual, merge, sample_envelope
         from .neural import NeuralModel
+        from .noise import noise_floor_error
 
         self._start(train, callback, should_stop)
         cfg = self.config
@@ -670,7 +685,8 @@ class PISML(_Estimator):
         unscored = {name: model for name, model in candidates.items() if name not in scores}
         scores.update(training_errors(unscored, scoring))
         self.candidates_ = candidates
-        explicit = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold)
+        explicit = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold,
+                                         noise_floor=noise_floor_error(scoring))
         explicit.metadata["selection"]["scored_on"] = ("training and small-signal records" if scoring is not train
                                                        else "training records")
         self.metrics_["training_error_pct"] = scores[explicit.metadata["selection"]["chosen"]]
@@ -736,14 +752,17 @@ class PISML(_Estimator):
 
 
 def _configured_selection(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
-                          verdicts: dict, hold: float, tolerance: float | None = None) -> ExplicitModel:
+                          verdicts: dict, hold: float, tolerance: float | None = None,
+                          noise_floor: float | None = None) -> ExplicitModel:
     """:func:`_selected` with the selection settings of ``cfg`` (``tolerance``: its
-    ``selection_tolerance`` unless given; the preliminary model before refinement takes 0)."""
+    ``selection_tolerance`` unless given; the preliminary model before refinement takes 0;
+    ``noise_floor``: the scoring records', for the warning on a model far worse than their noise)."""
     return _selected(template, candidates, scores,
                      tolerance=cfg.selection_tolerance if tolerance is None else tolerance, verdicts=verdicts,
                      unstable_rate=cfg.selection_unstable_rate, hold=hold,
                      equilibrium_grid=cfg.selection_equilibrium_grid, round_rise=cfg.selection_round_rise,
-                     grid_stability=cfg.selection_grid_stability)
+                     grid_stability=cfg.selection_grid_stability, noise_floor=noise_floor,
+                     noise_ratio=cfg.selection_warn_noise_ratio, noise_margin=cfg.selection_warn_noise_margin)
 
 
 def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
