@@ -167,6 +167,12 @@ def test_shooting_normal_equations_match_autodiff(truth, threads):
                 "A": jz.transpose(1, 2) @ jz, "E": jz.transpose(1, 2) @ jc, "bz": torch.einsum("wrk,wr->wk", jz, r)}
     for name, value in expected.items():
         np.testing.assert_allclose(blocks[name].numpy(), value.numpy(), rtol=1e-9, atol=1e-9 * float(value.abs().max()))
+    # the start states' blocks alone (fit_starts' pass, shared out too)
+    starts_only = problem._shoot(theta, z, "z")[1]
+    assert set(starts_only) == {"A", "bz"}
+    for name in ("A", "bz"):
+        np.testing.assert_allclose(starts_only[name].numpy(), expected[name].numpy(), rtol=1e-9,
+                                   atol=1e-9 * float(expected[name].abs().max()))
     assert problem.cost(theta, z) == pytest.approx(0.5 * float((r ** 2).sum() + (rs ** 2).sum()), rel=1e-12)
     # a cost pass keeps its states, and the normal equations at its point start from them ...
     kept = problem.normal_equations(theta, z)

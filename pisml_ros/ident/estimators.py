@@ -623,6 +623,8 @@ class PISML(_Estimator):
         scoring = concat_datasets([train, smallsignal]) if smallsignal is not None and len(smallsignal) else train
         scores = training_errors(candidates, scoring)
         hold = hold_error(scoring)
+        # what the noise alone leaves: the yardstick of the rescue and of the selection's caution
+        noise_floor = noise_floor_error(scoring)
         verdicts: dict = {}  # stability at the records' rest points, by candidate (selection, refinement start)
         if cfg.refine:
             # refinement takes most of the time: the best explicit model so far goes out first
@@ -677,7 +679,7 @@ class PISML(_Estimator):
             if not noisy and cfg.refine_growing_windows and "distilled" in candidates:
                 self._clean_growing_fallback(explicit, candidates, scores, verdicts, hold, starts, refine_from, add)
             if noisy and cfg.refine_growing_windows and np.isfinite(cfg.refine_rescue_ratio):
-                self._noisy_rescue(explicit, candidates, scores, verdicts, hold, starts, scoring, refine_from, add)
+                self._noisy_rescue(explicit, candidates, scores, verdicts, hold, starts, noise_floor, refine_from, add)
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the records when run freely
         # from their rest states or first samples (refinement that made things worse is dropped), or
@@ -686,7 +688,7 @@ class PISML(_Estimator):
         scores.update(training_errors(unscored, scoring))
         self.candidates_ = candidates
         explicit = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold,
-                                         noise_floor=noise_floor_error(scoring))
+                                         noise_floor=noise_floor)
         explicit.metadata["selection"]["scored_on"] = ("training and small-signal records" if scoring is not train
                                                        else "training records")
         self.metrics_["training_error_pct"] = scores[explicit.metadata["selection"]["chosen"]]
@@ -717,21 +719,18 @@ class PISML(_Estimator):
             "selected_before": chosen, "error_pct": scores[chosen], "added": sorted(set(candidates) - before)}
         self.metrics_["clean_growing_fallback"] = 1.0
 
-    def _noisy_rescue(self, explicit, candidates, scores, verdicts, hold, starts, scoring, refine_from, add):
+    def _noisy_rescue(self, explicit, candidates, scores, verdicts, hold, starts, floor, refine_from, add):
         """On noisy data, where the model the selection would take scores above
-        ``refine_rescue_ratio`` times what the noise alone leaves (:func:`~pisml_ros.ident.noise.noise_floor_error`
-        of the scoring records): the growing-window stages, which have no stability prior, let the
-        refinement wander to models that run away from the records' rest points (stop 41: the three
-        of stop 40's 40 dB fits of the default plant above the ratio were its three worst), so the first start is
-        refined again with ``refine_rescue_stability_weight`` in those stages, and that family
+        ``refine_rescue_ratio`` times what the noise alone leaves (``floor``,
+        :func:`~pisml_ros.ident.noise.noise_floor_error` of the scoring records): the growing-window
+        stages, which have no stability prior, let the refinement wander to models that run away from
+        the records' rest points (stop 41: the three of stop 40's 40 dB fits of the default plant
+        above the ratio were its three worst), so the first start is refined again with ``refine_rescue_stability_weight`` in those stages, and that family
         (``… with growing prior``) joins the candidates. Recorded in the metadata
         (``refinement_rescue``) and the metrics."""
-        from .noise import noise_floor_error
-
         cfg = self.config
         chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
                                        hold).metadata["selection"]["chosen"]
-        floor = noise_floor_error(scoring)
         ratio = scores[chosen] / max(floor, 1e-12)
         # (with the same weight as the first refinement's it would only repeat it)
         record = {"selected_before": chosen, "error_pct": scores[chosen], "noise_floor_pct": floor, "ratio": ratio,
