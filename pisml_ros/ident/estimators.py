@@ -725,9 +725,10 @@ class PISML(_Estimator):
         :func:`~pisml_ros.ident.noise.noise_floor_error` of the scoring records): the growing-window
         stages, which have no stability prior, let the refinement wander to models that run away from
         the records' rest points (stop 41: the three of stop 40's 40 dB fits of the default plant
-        above the ratio were its three worst), so the first start is refined again with ``refine_rescue_stability_weight`` in those stages, and that family
-        (``… with growing prior``) joins the candidates. Recorded in the metadata
-        (``refinement_rescue``) and the metrics."""
+        above the ratio were its three worst), so the first start is refined again with
+        ``refine_rescue_stability_weight`` in those stages, and that family (``… with growing
+        prior``) joins the candidates. Recorded in the metadata (``refinement_rescue``) and the
+        metrics."""
         cfg = self.config
         chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
                                        hold).metadata["selection"]["chosen"]
