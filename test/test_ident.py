@@ -1055,14 +1055,20 @@ def test_selection_records_in_words_what_is_wrong_with_the_chosen_model():
     warnings = selection_warnings(_selected(template, {"refined": unstable}, {"refined": 0.02}, unstable_rate=1.0,
                                             hold=0.4))
     assert warnings == [warnings[0]] and warnings[0].startswith("at 2 of the 2 operating points where the records sat")
-    # far worse than the noise explains: above 3x the floor plus 0.5 points (5 kHz seed 1 at 40 dB,
-    # 7.2 % against 1.84 %); the worst sound 40 dB fit scored 2.37x its floor (4.3 %)
+    # far worse than the noise explains, with the default ratio and margin (IdentConfig: 2.5x the
+    # floor plus 0.1 points): 5 kHz seed 1 at 40 dB, 7.2 % against 1.84 %, and protocol seed 19,
+    # 4.86 % against 1.85 %; the worst sound 40 dB fit scored 2.37x its floor (4.34 % against 1.83 %)
+    defaults = IdentConfig()
+
     def far(error, floor):
         return selection_warnings(_selected(template, {"refined": model(0.0)}, {"refined": error}, unstable_rate=1.0,
-                                            hold=40.0, noise_floor=floor, noise_ratio=3.0, noise_margin=0.5))
+                                            hold=40.0, noise_floor=floor, noise_ratio=defaults.selection_warn_noise_ratio,
+                                            noise_margin=defaults.selection_warn_noise_margin))
 
     assert far(4.34, 1.83) == []
+    assert len(far(4.86, 1.85)) == 1
     assert far(0.04, 0.0) == []  # clean records: the margin
+    assert len(far(0.38, 0.0)) == 1  # clean records far outside the clean targets
     (warning,) = far(7.2, 1.84)
     assert warning.startswith("the model reproduces the records far worse than their noise explains (free-run "
                               "error 7.2 % where the noise alone leaves 1.84 %)")
@@ -1071,7 +1077,7 @@ def test_selection_records_in_words_what_is_wrong_with_the_chosen_model():
     assert far(7.2, None) == []  # no floor given: no such check
     # not as well as the hold's: the hold's warning says it
     assert len(selection_warnings(_selected(template, {"refined": model(0.0)}, {"refined": 50.0}, unstable_rate=1.0,
-                                            hold=40.0, noise_floor=1.8, noise_ratio=3.0, noise_margin=0.5))) == 1
+                                            hold=40.0, noise_floor=1.8, noise_ratio=2.5, noise_margin=0.1))) == 1
     # models without a selection (baselines, older files) have none
     assert selection_warnings(model(0.0)) == [] and selection_warnings(None) == []
 

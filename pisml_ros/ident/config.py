@@ -437,9 +437,17 @@ class IdentConfig:
     # IOD / OOD; saturation 40 dB 6.3x, 5.2 / 62.9 %; the scenarios' 5 kHz seed 1 3.9x, 4.6 / 8.0 %),
     # and 20 dB (3.4x, 9.1 / 11.8 %) has the hold's warning already. It does not see the 40 dB
     # failures that score near the floor (vendor-c seeds 1 and 2 at 1.3-1.4x, 1.2 / 7.7 and
-    # 2.8 / 2.9 %; 30 dB at 1.5x, 1.4 / 1.9 %)
-    selection_warn_noise_ratio: float = 3.0
-    selection_warn_noise_margin: float = 0.5
+    # 2.8 / 2.9 %; 30 dB at 1.5x, 1.4 / 1.9 %). Stop 46 added the protocol's recordings 10-23 (the
+    # engine was not tuned on them): the chosen models scored 1.13-1.95x their floor except seed 19,
+    # 2.63x (4.86 % against 1.85 %; 2.06 / 2.36 % IOD / OOD, a refinement that went wrong and a
+    # rescue that did not mend it), which 3x + 0.5 did not flag. Since stop 46 2.5x + 0.1 points:
+    # the rescue's own trigger (refine_rescue_ratio), so a model still above it after the rescue is
+    # flagged; it flags seed 19 (threshold 4.72 %) and none of the sound fits (the 2.37x one,
+    # jumps 10-20° seed 0 at 40 dB: 4.34 % against a threshold of 4.68 %; clean ones score at most
+    # 0.04 % against 0.1). The same three of the 60 recorded fits as 3x + 0.5, and on clean data it
+    # also speaks up between 0.1 and 0.5 %, where the clean targets (0.05 / 0.1 %) are missed
+    selection_warn_noise_ratio: float = 2.5
+    selection_warn_noise_margin: float = 0.1
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None) -> "IdentConfig":
