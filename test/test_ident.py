@@ -314,7 +314,8 @@ def test_pisml_pipeline_stages_and_model(train, small, test_set):
     assert not any(name.endswith("from distilled") for name in est.candidates_)
 
 
-def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_from_the_merged_model(train, small):
+def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_from_the_merged_model(train, small,
+                                                                                                   monkeypatch):
     # with clean_growing_error 0 no candidate is good enough: the merged model is refined as noisy
     # records are (coarse samples leave the equation-error starts wrong, IdentConfig.clean_growing_error)
     updates = []
@@ -338,7 +339,11 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     # noisy records are refined in growing windows anyway: no fallback on top
     from pisml_ros.plant.noise import add_measurement_noise
 
-    # (refine_rescue_ratio 0: the rescue of noisy fits always runs here, tested below)
+    # (refine_rescue_ratio 0: the rescue of noisy fits always runs here, tested below; the first
+    # start's family taken as sufficient, so that the second start is skipped and comes after the rescue)
+    from pisml_ros.ident import estimators
+
+    monkeypatch.setattr(estimators, "_refinement_suffices", lambda *args, **kwargs: True)
     updates.clear()
     noisy = make_estimator("pisml", IdentConfig.from_mapping(
         {**FAST, "clean_growing_error": 0.0, "refine_rescue_ratio": 0.0})).fit(
@@ -367,6 +372,12 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     assert noisy.candidates_["refined"].metadata["refinement"]["growing_windows"]["stability_weight"] == 0
     assert prior["start"] == noisy.candidates_["refined"].metadata["refinement"]["start"]
     assert noisy.metrics_["refinement_rescue"] == 1.0
+    # still above the ratio after the rescue (0 here: always): the second start, skipped after the
+    # first start's family, is refined too and its family competes
+    second = noisy.explicit_model_.metadata["refinement_second_start"]
+    assert rescue["ratio_after"] > 0 and second["run"] and second["after_rescue"]
+    assert f"refined from {second['start']}" in noisy.candidates_
+    assert f"refined from {second['start']}" in scored and noisy.metrics_["refinement_starts_run"] == 2.0
 
 
 def test_noise_floor_error_is_what_the_noise_alone_leaves(train, small):
