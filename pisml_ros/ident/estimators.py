@@ -741,6 +741,12 @@ class PISML(_Estimator):
                                            hold).metadata["selection"]["chosen"]
             return chosen, scores[chosen] / max(floor, 1e-12)
 
+        def progress_on():
+            """A progress callback that goes on from where the refinement left it (0.84 after the
+            first start alone, 0.98 after two, or after the starts run side by side) to 0.99."""
+            base = max(getattr(self, "_progress", 0.84), 0.84)
+            return lambda fraction, losses: self._emit("refinement", base + (0.99 - base) * fraction, losses=losses)
+
         chosen, ratio = chosen_ratio()
         # (with the same weight as the first refinement's it would only repeat it)
         record = {"selected_before": chosen, "error_pct": scores[chosen], "noise_floor_pct": floor, "ratio": ratio,
@@ -748,23 +754,16 @@ class PISML(_Estimator):
                               and cfg.refine_rescue_stability_weight != cfg.refine_growing_stability_weight)}
         explicit.metadata["refinement_rescue"] = record
         if record["run"]:
-            # progress goes on from where the refinement starts left it (0.84 after the first start
-            # alone, 0.98 after two, or after the starts run side by side)
-            base = max(getattr(self, "_progress", 0.84), 0.84)
             before = set(candidates)
             rescue = dataclasses.replace(cfg, refine_growing_stability_weight=cfg.refine_rescue_stability_weight)
-            add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
-                "refinement", base + (0.99 - base) * fraction, losses=losses), config=rescue),
-                suffix=" with growing prior")
+            add(0, *refine_from(starts[0], progress_on(), config=rescue), suffix=" with growing prior")
             record["added"] = sorted(set(candidates) - before)
             self.metrics_["refinement_rescue"] = 1.0
             chosen, ratio = chosen_ratio()
             record["ratio_after"] = ratio
         second = explicit.metadata.get("refinement_second_start")
         if ratio > cfg.refine_rescue_ratio and second is not None and not second["run"] and len(starts) > 1:
-            base = max(getattr(self, "_progress", 0.84), 0.84)
-            add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
-                "refinement", base + (0.99 - base) * fraction, losses=losses)))
+            add(1, *refine_from(starts[1], progress_on()))
             second.update(run=True, after_rescue=True)
             self.metrics_["refinement_starts_run"] = 2.0
 
