@@ -219,29 +219,29 @@ class IdentConfig:
     # the output filter's equations (rows of the roles' voltage and current pairs) in the
     # refinement: "physics" keeps them to the constant, the dq signals, the grid terms and the
     # frame-frequency coupling with their own pair's other axis (:func:`~.library.filter_row_mask`),
-    # re-fitted on those (equation error, noise-compensated) at each refinement start; "any" lets
-    # them take every term of the library. Why: at 40 dB the d-axis grid-current row took products
-    # such as Pf*vc_d (693), Pf*ig_d (-494), Pf*il_d (557) that nearly cancel at the records'
-    # currents (truth: Pf*ig_q only, -18.9), and the sag to 0.4 p.u. drives 5x those currents.
-    # Measured (stop 21, 40 dB, recordings 0 / 1 / 2, IOD / OOD %, coefficients): "physics"
-    # 0.20 / 0.83 (93), 1.27 / 1.09 (90), 1.50 / 1.15 (87); with refine_stability_weight 1: 1 and
-    # 2 0.88 / 0.85, 1.28 / 0.79; with the first prune budget 0.0003: 1 0.31 / 2.41 (124) — against
-    # "any" 0.40 / 0.72 (135), 0.40 / 0.75 (129), 0.51 / 2.12 (147). Sparser (≈ 240x the hybrid) and
-    # OOD mostly better, IOD worse: the pruning costs it (the refined models 0.19-0.33 % IOD). Not
-    # the default. Known weakness: the start's re-fit uses trapezoid quadrature (noise moments are
-    # computed so), ~17 % off in an LCL row on clean 20 ms records; plain zeroing of the dropped
-    # terms (no re-fit) gave 1.26 / 3.45 % on recording 0, and a re-fit over every plain signal
-    # diverged on recording 2. Stop 22 (fallback refinement), recordings 0-4: 0.20 / 0.83 (93),
-    # 1.27 / 1.09 (90), 1.50 / 1.15 (87), 0.38 / 1.69 (116), 0.30 / 1.28 (102); ug 0.2 without an
-    # equilibrium on 0 and 3, a spurious unstable mode there on 2. Stop 44 (the current engine,
-    # bench/candidates.py --set filter_terms=physics, recordings 0-10; default in brackets): 0.19 /
-    # 0.31 (62) [0.16 / 0.44 (78)], 1.71 / 2.03 (72) [0.40 / 0.69], 1.66 / 2.06 (86) [0.41 / 0.46],
-    # 0.74 / 0.49 (89) [0.33 / 0.50], 0.27 / 0.38 (86) [0.43 / 0.90 (175)], 0.69 / 0.34 (107)
-    # [0.58 / 0.60], 6 and 7 both refinement starts diverged (an LCL mode unstable at +2000 1/s: the
-    # backbone chosen, 5.0 / 5.4 and 5.5 / 6.9 %), 0.50 / 0.74 (90) [0.21 / 0.26], 0.44 / 0.20 (78)
-    # [0.29 / 0.46], 0.21 / 0.37 (80) [0.24 / 0.37]: 5 of 11 within both targets against 8. Where
-    # it converges it is sparser (62-107 coefficients, 4 of 9 at 84 or fewer), but the first prune
-    # round costs it the IOD (recording 1: refined 0.26 %, 212 coefficients; pruned 1.60 %, 85)
+    # the kept terms re-fitted at each refinement start to the start's own field over the records'
+    # samples; "any" lets them take every term of the library. Why: with "any", controller states
+    # and products stand in for the currents where the records are (40 dB, protocol seed 22: dvc_d/dt
+    # took 2612 - 1.86e4*phi_d + 2.0e4*gamma_q - 7350*gamma_d - ..., none of which the plant has) and
+    # move the model's equilibrium where the plant rests beyond the records (ug 0.2: ig_d 0.08 p.u.
+    # against 0.74): spurious unstable modes at low ug on 4 of 24 recordings, and 90-175
+    # coefficients. Measured (stop 47, bench/setting_sweep.py, 40 dB protocol recordings 0-23,
+    # bench/sweeps/filter-physics-project.json against default-stop47-any.json): both accuracy
+    # targets and no spurious mode 14 of 24 either way (benchmark recordings 0-9: 4 against 7; never
+    # tuned on, 10-23: 10 against 7); spurious modes on 2 (seed 4 at ug 1.0-1.1, seed 22 at
+    # 0.2-0.6) against 4; <= 84 coefficients on 21 against 2 (median 70 against 96); every 40 dB
+    # target on one recording 14 against 2; IOD median 0.37 against 0.31 %, OOD 0.49 against 0.62 %,
+    # worst 1.67 / 2.06 % (seed 2) against 0.60 / 1.31 %. But on the other inverters
+    # (bench/PLANTS_RESULTS_filter_physics.md, 40 dB, recordings 0-2) both accuracy targets on 1 of 9
+    # against 5: standard 0.615 / 0.166, 0.278 / 1.22, 1.67 / 2.06 %; vendor-b 0.506 / 0.587,
+    # 0.284 / 0.382 ok, 0.581 / 1.01; vendor-c 2.77 / 3.29 % (both refinement starts lost: the
+    # backbone chosen, 303 coefficients, spurious at every ug; "any" 0.356 / 0.272 %), 0.732 / 3.43,
+    # 2.8 / 2.91 (as with "any"); an equilibrium at every grid point on 9 of 9 against 7. Not the
+    # default: sparser and better on the unseen protocol recordings, less robust off the protocol.
+    # The re-fit of stops 21-46 (equation error on the records' derivatives, noise-compensated)
+    # started recordings 6 and 7 at an unstable LCL mode (+2000 1/s; 5 of 11 within both targets
+    # against 8 with "any", bench/sweeps/filter-physics.json); "physics" on the voltage pair only,
+    # with the field re-fit: 10 of 24, spurious modes on 5, 13 compressed (filter-voltage-project.json)
     filter_terms: str = "any"
     # stability prior of the refinement (the one-stage refinement, and the polish of the pruned model
     # on noisy data): at operating points where the plant sat at rest (refine_stability_points)
