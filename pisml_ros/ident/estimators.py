@@ -937,22 +937,33 @@ def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Datas
         meta["integrator_terms"] = "linear"
     coef = np.where(mask, model.coefficients, 0.0)
     if cfg.filter_terms == "physics" and train is not None:
-        allowed = filter_row_mask(model.terms, list(model.state_names), signals, cfg.roles)
-        rows = [j for j in range(model.n_states) if not allowed[:, j].all()]
-        # the dropped terms stood in for the kept ones where the records are (collinear there): the
-        # kept ones are re-fitted to the start's own field over the records' samples, which keeps
-        # what the start learned where the data are and drops what it extrapolates. A re-fit on the
-        # records' derivatives (equation error, noise-compensated) started 2 of 11 refinements at an
-        # unstable LCL mode (+2000 1/s) at 40 dB and lost every 40 dB target there (stop 44)
-        z = np.concatenate([np.hstack([tr.x, tr.u]) for tr in train])
-        theta = term_set(model.terms, signals).evaluate(z)
-        for j in rows:
-            cols = np.flatnonzero(allowed[:, j] & mask[:, j])
-            field = theta @ model.coefficients[:, j]
-            coef[:, j] = 0.0
-            coef[cols, j] = np.linalg.lstsq(theta[:, cols], field, rcond=None)[0]
+        coef = _filter_rows_physics(model, coef, cfg.roles, train)
         meta["filter_terms"] = "physics"
     return ExplicitModel(model.state_names, model.input_names, model.terms, coef, meta)
+
+
+def _filter_rows_physics(model: ExplicitModel, coef: np.ndarray, roles, train: Dataset) -> np.ndarray:
+    """``coef`` (over ``model``'s terms) with the output filter's rows kept to the terms
+    :func:`~.library.filter_row_mask` admits, those re-fitted to the rows' own field over the
+    records' samples.
+
+    The dropped terms stood in for the kept ones where the records are (collinear there): the
+    re-fit keeps what the rows learned where the data are and drops what they extrapolate. A re-fit
+    on the records' derivatives (equation error, noise-compensated) started 2 of 11 refinements at
+    an unstable LCL mode (+2000 1/s) at 40 dB and lost every 40 dB target there (stop 44).
+    """
+    signals = list(model.state_names) + list(model.input_names)
+    allowed = filter_row_mask(model.terms, list(model.state_names), signals, roles)
+    z = np.concatenate([np.hstack([tr.x, tr.u]) for tr in train])
+    theta = term_set(model.terms, signals).evaluate(z)
+    out = coef.copy()
+    for j in range(model.n_states):
+        if allowed[:, j].all():
+            continue
+        cols = np.flatnonzero(allowed[:, j])
+        out[:, j] = 0.0
+        out[cols, j] = np.linalg.lstsq(theta[:, cols], theta @ coef[:, j], rcond=None)[0]
+    return out
 
 
 def frequency_centre(train: Dataset, frequency: str) -> float:
