@@ -942,7 +942,7 @@ def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Datas
     return ExplicitModel(model.state_names, model.input_names, model.terms, coef, meta)
 
 
-def _filter_rows_physics(model: ExplicitModel, coef: np.ndarray, roles, train: Dataset) -> np.ndarray:
+def _filter_rows_physics(model: ExplicitModel, coef: np.ndarray, roles: SignalRoles, train: Dataset) -> np.ndarray:
     """``coef`` (over ``model``'s terms) with the output filter's rows kept to the terms
     :func:`~.library.filter_row_mask` admits, those re-fitted to the rows' own field over the
     records' samples.
