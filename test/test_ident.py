@@ -1385,6 +1385,58 @@ def test_physics_filter_start_drops_cancelling_terms_and_keeps_the_starts_field_
     assert distance(restricted.coefficients, truth) < 1.05 * distance(coef, truth)
 
 
+
+def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_is_lost(train, small, monkeypatch):
+    # every restricted refinement breaks down here (as both did on vendor-c seed 0 at 40 dB): the
+    # selection would take a start, so the starts are refined again with the filter rows free
+    from pisml_ros.ident import estimators
+    from pisml_ros.ident.library import filter_row_mask
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    real = estimators.refine_explicit
+    restricted_starts = []
+
+    def lost_when_restricted(model, *args, **kwargs):
+        if model.metadata.get("filter_terms") == "physics":
+            restricted_starts.append(model)
+            return {}
+        return real(model, *args, **kwargs)
+
+    monkeypatch.setattr(estimators, "refine_explicit", lost_when_restricted)
+    cfg = IdentConfig.from_mapping({**FAST, "filter_terms": "physics", "refine_rescue_ratio": "inf"})
+    est = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
+                                           add_measurement_noise(small, 40.0, seed=2))
+    meta = est.explicit_model_.metadata
+    record = meta["refinement_unrestricted"]
+    assert restricted_starts and record["run"] and record["refinement_lost"]
+    assert estimators._refinement_family(record["selected_before"]) is None
+    assert not any(name.startswith(("refined", "pruned")) for name in meta["selection"]["training_error_pct"]
+                   if not name.endswith(" unrestricted"))
+    assert record["ratio"] == pytest.approx(record["error_pct"] / meta["selection"]["noise_floor_pct"])
+    # one family per start, scored and in the selection
+    starts = [est.candidates_[name].metadata["refinement"]["start"]
+              for name in ("refined unrestricted", "refined from noise-compensated backbone unrestricted")
+              if name in est.candidates_]
+    assert starts[0] in ("distilled", *[n for n in est.candidates_ if n.startswith("re-fit")])
+    assert {estimators._refinement_family(name) for name in record["added"]} == {
+        " unrestricted", *[f" from {s} unrestricted" for s in starts[1:]]}
+    assert set(record["added"]) <= set(meta["selection"]["training_error_pct"])
+    assert est.metrics_["refinement_unrestricted"] == 1.0
+    # the families' filter rows are free: the refined model keeps terms the physics mask rejects
+    refined = est.candidates_["refined unrestricted"]
+    signals = list(refined.state_names) + list(refined.input_names)
+    mask = filter_row_mask(refined.terms, list(refined.state_names), signals, cfg.roles)
+    assert np.any((refined.coefficients != 0) & ~mask)
+    assert "filter_terms" not in refined.metadata or refined.metadata["filter_terms"] != "physics"
+    # where the restricted refinement gives the model and scores near the noise: no fallback
+    monkeypatch.setattr(estimators, "refine_explicit", real)
+    kept = make_estimator("pisml", IdentConfig.from_mapping({**FAST, "filter_terms": "physics"})).fit(train, small)
+    record = kept.explicit_model_.metadata["refinement_unrestricted"]
+    assert not record["run"] and not record["refinement_lost"]
+    assert record["ratio"] is None  # clean records: no noise floor to compare with
+    assert np.isfinite(kept.explicit_model_.metadata["selection"]["training_error_pct"]["refined"])
+    assert not any(name.endswith(" unrestricted") for name in kept.candidates_)
+
 def test_centred_couplings_are_the_same_field_and_make_the_plain_signal_costly_to_drop(train):
     from pisml_ros.ident.estimators import _couplings_centred, frequency_centre
     from pisml_ros.ident.library import centred_terms, rebased

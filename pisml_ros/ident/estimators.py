@@ -771,11 +771,11 @@ class PISML(_Estimator):
         return lambda fraction, losses: self._emit("refinement", base + (0.99 - base) * fraction, losses=losses)
 
     def _unrestricted_fallback(self, explicit, candidates, scores, verdicts, hold, starts, floor, refine_from, add):
-        """With ``filter_terms`` "physics": where the model the selection would take is not from a
-        refinement (every restricted start's refinement lost or broke down), or on noisy data
-        still scores above ``refine_rescue_ratio`` times what the noise alone leaves (``floor``;
-        None on clean data), each refinement start (at most two) is refined again with the output
-        filter's rows free (``filter_terms`` "any"), and those families (``… unrestricted``) join
+        """With ``filter_terms`` "physics": where no restricted refinement gives a model that runs
+        freely through the records (every one broke down or blew up), or where on noisy data the
+        model the selection would take still scores above ``refine_rescue_ratio`` times what the
+        noise alone leaves (``floor``; None on clean data), each refinement start (at most two) is
+        refined again with the output filter's rows free (``filter_terms`` "any"), and those families (``… unrestricted``) join
         the candidates. Stop 47, vendor-c seed 0 at 40 dB: both restricted starts were lost
         and the backbone was chosen (2.77 / 3.29 % IOD / OOD, 303 coefficients, spurious modes at
         every ug), where the free rows' refinement gives 0.356 / 0.272 %. Recorded in the metadata
@@ -783,7 +783,9 @@ class PISML(_Estimator):
         cfg = self.config
         chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
                                        hold).metadata["selection"]["chosen"]
-        lost = _refinement_family(chosen) is None
+        # (a re-fit may be chosen on its merits: lost means no refinement ran through to a free run)
+        lost = not any(np.isfinite(scores.get(name, np.inf)) for name in candidates
+                       if _refinement_family(name) is not None)
         ratio = scores[chosen] / max(floor, 1e-12) if floor is not None else None
         record = {"selected_before": chosen, "error_pct": scores[chosen], "refinement_lost": lost,
                   "ratio": ratio, "run": bool(lost or (ratio is not None and ratio > cfg.refine_rescue_ratio))}
