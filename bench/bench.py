@@ -445,17 +445,41 @@ def compression_text(row: dict) -> str:
     return "—" if ratio is None else f"{ratio:.0f}×"
 
 
+def settings_or_exit(items: list, parser: argparse.ArgumentParser | None = None) -> dict:
+    """The ``--set KEY=VALUE`` items of a benchmark script as settings (strings, as ``pisml identify
+    --set`` takes them), checked against :class:`IdentConfig` before any fit: a malformed item, an
+    unknown key or a bad value stops the script with the error (through ``parser`` where given)."""
+    from pisml_ros.ident import ConfigError, settings_from_assignments
+
+    try:
+        settings = settings_from_assignments(items, "--set")
+        IdentConfig.load(None, settings)
+    except ConfigError as err:
+        if parser is not None:
+            parser.error(str(err))
+        raise SystemExit(f"{Path(sys.argv[0]).name}: {err}") from None
+    return settings
+
+
+def add_settings_option(parser: argparse.ArgumentParser) -> None:
+    """``--set KEY=VALUE`` (repeatable): an identification setting other than the default, so that an
+    option is measured without editing ``pisml_ros/ident/config.py``."""
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="identification setting, repeatable (as pisml identify --set); none: the default")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="standard plant, 40 dB and clean, no sweeps")
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--out", default=str(BENCH / "results.json"))
     parser.add_argument("--markdown", default=str(BENCH / "RESULTS.md"))
+    add_settings_option(parser)
     args = parser.parse_args(argv)
     from pisml_ros.report.figures import plot_spectra
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    config = IdentConfig()
+    config = IdentConfig.load(None, settings_or_exit(args.set, parser))
     started = time.monotonic()
     runs = []
     fig_dir = BENCH / "figures"
@@ -505,7 +529,8 @@ def save(args, runs, started, config, final=False):
     """Write the results JSON (and, at the end, the markdown); called after every fit so a crash loses nothing."""
     results = {
         "complete": final,
-        "command": "python bench/bench.py" + (" --quick" if args.quick else ""),
+        "command": "python bench/bench.py" + (" --quick" if args.quick else "")
+                   + "".join(f" --set {item}" for item in args.set),
         "mode": "quick" if args.quick else "full",
         "machine": machine(),
         "date": time.strftime("%Y-%m-%d"),

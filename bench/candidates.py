@@ -48,7 +48,7 @@ def state_errors(model, test, t_split: float = 0.02) -> dict:
 
 
 def main(argv=None) -> int:
-    from bench import finite, make_estimator, plant_grid, spectra, spurious_points
+    from bench import add_settings_option, finite, make_estimator, plant_grid, settings_or_exit, spectra, spurious_points
     from scenarios_bench import SCENARIOS, scenario_datasets
 
     from pisml_ros.analysis.metrics import protocol_errors, spectrum_wasserstein
@@ -60,18 +60,12 @@ def main(argv=None) -> int:
     parser.add_argument("--scenario", default="protocol", help=f"one of {sorted(SCENARIOS)}")
     parser.add_argument("--seed", type=int, default=0, help="recording (scenario and noise seed)")
     parser.add_argument("--noise", default="40", help="'clean' or an SNR in dB")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="identification setting, repeatable (as pisml identify --set)")
+    add_settings_option(parser)
     parser.add_argument("--out", help="JSON file for the candidates' models and rows")
     args = parser.parse_args(argv)
     if args.scenario not in SCENARIOS:
         parser.error(f"--scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
-    settings = {}  # as `pisml identify --set`: IdentConfig converts the strings
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            parser.error(f"--set {item!r}: expected KEY=VALUE")
-        settings[key.strip()] = value.strip()
+    settings = settings_or_exit(args.set, parser)  # as `pisml identify --set`
     snr = None if args.noise == "clean" else float(args.noise)
 
     plant, train, small, test = scenario_datasets(SCENARIOS[args.scenario], snr, args.seed)

@@ -40,18 +40,20 @@ METHODS = ("pisml", "mod-sindy")
 
 
 def main(argv=None) -> int:
+    from bench import add_settings_option, datasets, fit_summary, plant_grid, run_fit, settings_or_exit, ug_sweep_set
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--plants", default=",".join(PLANT_PARAMETERS))
     parser.add_argument("--seeds", default="0,1,2", help="recordings (scenario and noise seeds)")
     parser.add_argument("--out", default=str(BENCH / "plants_results.json"))
     parser.add_argument("--markdown", default=str(BENCH / "PLANTS_RESULTS.md"))
+    add_settings_option(parser)
     args = parser.parse_args(argv)
 
-    from bench import datasets, fit_summary, plant_grid, run_fit, ug_sweep_set
     from pisml_ros.ident import IdentConfig
     from pisml_ros.plant.parameters import PlantParameters
 
-    config = IdentConfig()
+    config = IdentConfig.load(None, settings_or_exit(args.set, parser))
     started = time.monotonic()
     rows = []
     for name in (p.strip() for p in args.plants.split(",") if p.strip()):

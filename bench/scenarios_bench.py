@@ -44,17 +44,19 @@ def scenario_datasets(spec: dict, snr: float | None, seed: int):
 
 
 def main(argv=None) -> int:
+    from bench import add_settings_option, fit_summary, plant_grid, run_fit, settings_or_exit, ug_sweep_set
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenarios", default=",".join(SCENARIOS), help="names of SCENARIOS, comma-separated")
     parser.add_argument("--seeds", default="0,1", help="recordings (scenario and noise seeds)")
     parser.add_argument("--noise", default="clean,40", help="'clean' and/or SNRs in dB")
     parser.add_argument("--out", default=str(BENCH / "scenarios_results.json"))
     parser.add_argument("--markdown", default=str(BENCH / "SCENARIOS_RESULTS.md"))
+    add_settings_option(parser)
     parser.add_argument("--keep-other-noise", action="store_true",
                         help="keep the rows of --out at noise levels not in --noise (re-run only those in it)")
     args = parser.parse_args(argv)
 
-    from bench import fit_summary, plant_grid, run_fit, ug_sweep_set
     from pisml_ros.ident import IdentConfig
 
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
@@ -62,7 +64,7 @@ def main(argv=None) -> int:
     if unknown:
         parser.error(f"--scenarios: unknown {unknown} (known: {', '.join(SCENARIOS)})")
     levels = [None if s.strip() == "clean" else float(s) for s in args.noise.split(",") if s.strip()]
-    config = IdentConfig()
+    config = IdentConfig.load(None, settings_or_exit(args.set, parser))
     started = time.monotonic()
     rows = []
     if args.keep_other_noise and Path(args.out).exists():

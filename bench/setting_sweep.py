@@ -118,20 +118,15 @@ def scored_row(model, plant, test, grid, truth) -> dict:
 
 
 def run(args) -> int:
-    from bench import make_estimator, plant_grid
+    from bench import make_estimator, plant_grid, settings_or_exit
     from scenarios_bench import SCENARIOS, scenario_datasets
 
     from pisml_ros.ident import IdentConfig
 
     if args.scenario not in SCENARIOS:
         raise SystemExit(f"setting_sweep: --scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
-    settings = {}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"setting_sweep: --set {item!r}: expected KEY=VALUE")
-        settings[key.strip()] = value.strip()
-    config = IdentConfig.load(None, settings)  # a bad key or value stops here, before any fit
+    settings = settings_or_exit(args.set)
+    config = IdentConfig.load(None, settings)
     snr = None if args.noise == "clean" else float(args.noise)
     path = Path(args.out) if args.out else SWEEPS / f"{args.name}.json"
     data = load(path) if path.exists() else {"name": args.name, "rows": {}}
@@ -226,12 +221,13 @@ def compare(args) -> int:
 
 
 def main(argv=None) -> int:
+    from bench import add_settings_option
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_run = sub.add_parser("run", help="fit PISML with a setting on each recording and score the chosen model")
     p_run.add_argument("--name", required=True, help="the sweep's name (bench/sweeps/NAME.json)")
-    p_run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                       help="identification setting, repeatable (as pisml identify --set); none: the default")
+    add_settings_option(p_run)
     p_run.add_argument("--seeds", default="0-15", help="recordings, e.g. 0-15 or 0,2,5 (default 0-15)")
     p_run.add_argument("--scenario", default="protocol", help="a scenario of bench/scenarios_bench.py")
     p_run.add_argument("--noise", default="40", help="'clean' or an SNR in dB (default 40)")

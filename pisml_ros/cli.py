@@ -108,18 +108,12 @@ def cmd_identify(args) -> int:
 
     from .analysis.operating_point import identified_input_range
     from .data import concat_datasets, read_dataset
-    from .ident import METHODS, ConfigError, IdentConfig, make_estimator, selection_warnings
+    from .ident import METHODS, ConfigError, IdentConfig, make_estimator, selection_warnings, settings_from_assignments
 
     if args.method not in METHODS:
         raise UserError(f"--method {args.method}: choose one of {', '.join(METHODS)}")
-    overrides = {}
-    for item in args.set or []:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise UserError(f"--set {item}: expected KEY=VALUE")
-        overrides[key.strip()] = value.strip()
     try:
-        config = IdentConfig.load(args.config, overrides)
+        config = IdentConfig.load(args.config, settings_from_assignments(args.set or [], "--set"))
     except ConfigError as err:
         raise UserError(str(err)) from None
     train = concat_datasets([read_dataset(p) for p in args.data])

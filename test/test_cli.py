@@ -66,6 +66,8 @@ def test_analyse_with_params_file_and_margin(tmp_path):
      "current_limit: parameter imax: not a number"),
     (["simulate", "--scenario", "train", "--effect-param", "delay.order=5", "--out", "{out}"],
      "order must be 1 or 2"),
+    (["identify", "--data", "{missing}", "--set", "epochs", "--out", "{out}"], "--set: 'epochs' is not KEY=VALUE"),
+    (["identify", "--data", "{missing}", "--set", "epochs=0", "--out", "{out}"], "epochs must be > 0, got 0"),
 ])
 def test_user_errors_are_one_line_with_status_2(tmp_path, args, message):
     bad_csv = tmp_path / "bad.csv"

@@ -97,6 +97,17 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.load(path)
 
 
+
+def test_settings_from_assignments_keep_strings_and_name_a_malformed_item():
+    from pisml_ros.ident import settings_from_assignments
+
+    assert settings_from_assignments([" epochs = 3", "", "roles={\"angle\": \"d\"}", "hidden=16,16"]) == {
+        "epochs": "3", "roles": '{"angle": "d"}', "hidden": "16,16"}
+    # IdentConfig converts the strings as it does a file's values
+    assert IdentConfig.load(None, settings_from_assignments(["epochs=3", "hidden=16,16"])).hidden == (16, 16)
+    with pytest.raises(ConfigError, match="overrides: 'epochs' is not KEY=VALUE"):
+        settings_from_assignments(["epochs"], "overrides")
+
 def test_physics_library_follows_the_roles():
     roles = SignalRoles.from_mapping({"frequency": "Pf"})
     terms = physics_library(roles, ("delta", "Pf", "Qf", "phi_d", "phi_q", "gamma_d", "gamma_q", "il_d", "il_q",

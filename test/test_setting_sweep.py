@@ -55,3 +55,25 @@ def test_candidate_tables_import_into_a_sweep_that_compare_reads(tmp_path, capsy
     Path(tables[0]).write_text(json.dumps(other))
     with pytest.raises(SystemExit, match="another scenario, noise or setting"):
         setting_sweep.main(["import", "--name", "x", "--out", str(tmp_path / "x.json"), tables[1], tables[0]])
+
+
+def test_benchmark_scripts_take_settings_and_stop_on_a_bad_one_before_any_fit(capsys):
+    import bench
+    import candidates
+    import plants_bench
+    import scenarios_bench
+
+    assert bench.settings_or_exit([" filter_terms = physics", "", "epochs=3"]) == {"filter_terms": "physics",
+                                                                                    "epochs": "3"}
+    # a malformed item, an unknown key, a bad value: each named, and no fit started (these would take minutes)
+    for main, argv, named in [(scenarios_bench.main, ["--set", "epochs"], "'epochs' is not KEY=VALUE"),
+                              (plants_bench.main, ["--set", "bogus=1"], "unknown key(s) ['bogus']"),
+                              (bench.main, ["--quick", "--set", "filter_terms=linear"],
+                               "filter_terms must be physics or any, got 'linear'"),
+                              (candidates.main, ["--set", "epochs=0"], "epochs must be > 0"),
+                              (setting_sweep.main, ["run", "--name", "x", "--set", "selection_tolerance=-1"],
+                               "selection_tolerance")]:
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert named in str(stop.value) + capsys.readouterr().err
+

@@ -5,10 +5,10 @@ mod-sindy | node), then ``fit(train, smallsignal)``; every estimator leaves
 ``model_`` (simulate, jacobian, eigenvalues, n_parameters) and, where the method
 has one, ``explicit_model_`` (an :class:`~pisml_ros.model.ExplicitModel`).
 """
-from .config import ConfigError, IdentConfig
+from .config import ConfigError, IdentConfig, settings_from_assignments
 from .roles import RoleError, SignalRoles
 
-__all__ = ["ConfigError", "IdentConfig", "RoleError", "SignalRoles", "METHODS", "make_estimator",
+__all__ = ["ConfigError", "IdentConfig", "RoleError", "SignalRoles", "METHODS", "make_estimator", "settings_from_assignments",
            "StageUpdate", "IdentificationCancelled", "selection_warnings"]
 
 

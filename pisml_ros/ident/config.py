@@ -14,6 +14,27 @@ class ConfigError(ValueError):
     """An unknown or out-of-range identification setting; the message names it."""
 
 
+def settings_from_assignments(items, where: str = "--set") -> dict:
+    """``["epochs=20", "filter_terms=physics"]`` as ``{"epochs": "20", "filter_terms": "physics"}``:
+    keys and values stripped, values kept as strings (:meth:`IdentConfig.from_mapping` converts
+    them), blank items skipped.
+
+    Raises
+    ------
+    ConfigError
+        For an item without ``=``, named with ``where`` (the option or parameter it came from).
+    """
+    out = {}
+    for item in items:
+        if not item or not item.strip():
+            continue
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ConfigError(f"{where}: {item!r} is not KEY=VALUE")
+        out[key.strip()] = value.strip()
+    return out
+
+
 @dataclasses.dataclass
 class IdentConfig:
     """All knobs of PISML and the baselines, with the paper's defaults.

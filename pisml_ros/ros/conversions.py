@@ -194,16 +194,10 @@ def overrides_from_fields(names, values, where: str = "overrides") -> dict:
 
 def overrides_from_assignments(items, where: str = "overrides") -> dict:
     """``["epochs=20", "refine=false"]`` as a settings mapping (values parsed as in :func:`overrides_from_fields`)."""
-    names, values = [], []
-    for item in items:
-        if not item:
-            continue
-        if "=" not in item:
-            raise ValueError(f"{where}: {item!r} is not KEY=VALUE")
-        key, value = item.split("=", 1)
-        names.append(key.strip())
-        values.append(value.strip())
-    return overrides_from_fields(names, values, where)
+    from ..ident.config import settings_from_assignments
+
+    pairs = settings_from_assignments(items, where)
+    return overrides_from_fields(list(pairs), list(pairs.values()), where)
 
 
 def failed_stability_message(model_id: str, ug: float, theta_g: float, error: str, state_names=(),
