@@ -48,7 +48,8 @@ def state_errors(model, test, t_split: float = 0.02) -> dict:
 
 
 def main(argv=None) -> int:
-    from bench import add_settings_option, finite, make_estimator, plant_grid, settings_or_exit, spectra, spurious_points
+    from bench import (add_settings_option, finite, make_estimator, plant_grid, settings_or_exit, spectra,
+                       spurious_points)
     from scenarios_bench import SCENARIOS, scenario_datasets
 
     from pisml_ros.analysis.metrics import protocol_errors, spectrum_wasserstein

@@ -8,8 +8,8 @@ has one, ``explicit_model_`` (an :class:`~pisml_ros.model.ExplicitModel`).
 from .config import ConfigError, IdentConfig, settings_from_assignments
 from .roles import RoleError, SignalRoles
 
-__all__ = ["ConfigError", "IdentConfig", "RoleError", "SignalRoles", "METHODS", "make_estimator", "settings_from_assignments",
-           "StageUpdate", "IdentificationCancelled", "selection_warnings"]
+__all__ = ["ConfigError", "IdentConfig", "RoleError", "SignalRoles", "METHODS", "make_estimator",
+           "settings_from_assignments", "StageUpdate", "IdentificationCancelled", "selection_warnings"]
 
 
 def __getattr__(name):

@@ -775,11 +775,12 @@ class PISML(_Estimator):
         freely through the records (every one broke down or blew up), or where on noisy data the
         model the selection would take still scores above ``refine_rescue_ratio`` times what the
         noise alone leaves (``floor``; None on clean data), each refinement start (at most two) is
-        refined again with the output filter's rows free (``filter_terms`` "any"), and those families (``… unrestricted``) join
-        the candidates. Stop 47, vendor-c seed 0 at 40 dB: both restricted starts were lost
-        and the backbone was chosen (2.77 / 3.29 % IOD / OOD, 303 coefficients, spurious modes at
-        every ug), where the free rows' refinement gives 0.356 / 0.272 %. Recorded in the metadata
-        (``refinement_unrestricted``) and the metrics."""
+        refined again with the output filter's rows free (``filter_terms`` "any"), and those
+        families (``… unrestricted``) join the candidates. Stop 47, vendor-c seed 0 at 40 dB: both
+        restricted starts were lost and the backbone was chosen (2.77 / 3.29 % IOD / OOD, 303
+        coefficients, spurious modes at every ug), where the free rows' refinement gives 0.356 /
+        0.272 % (stop 48, 107-113 s). Recorded in the metadata (``refinement_unrestricted``) and
+        the metrics."""
         cfg = self.config
         chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
                                        hold).metadata["selection"]["chosen"]
