@@ -97,7 +97,6 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.load(path)
 
 
-
 def test_settings_from_assignments_keep_strings_and_name_a_malformed_item():
     from pisml_ros.ident import settings_from_assignments
 
@@ -107,6 +106,7 @@ def test_settings_from_assignments_keep_strings_and_name_a_malformed_item():
     assert IdentConfig.load(None, settings_from_assignments(["epochs=3", "hidden=16,16"])).hidden == (16, 16)
     with pytest.raises(ConfigError, match="overrides: 'epochs' is not KEY=VALUE"):
         settings_from_assignments(["epochs"], "overrides")
+
 
 def test_physics_library_follows_the_roles():
     roles = SignalRoles.from_mapping({"frequency": "Pf"})
@@ -1396,7 +1396,6 @@ def test_physics_filter_start_drops_cancelling_terms_and_keeps_the_starts_field_
     assert distance(restricted.coefficients, truth) < 1.05 * distance(coef, truth)
 
 
-
 def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_is_lost(train, small, monkeypatch):
     # every restricted refinement breaks down here (as both did on vendor-c seed 0 at 40 dB): the
     # selection would take a start, so the starts are refined again with the filter rows free
@@ -1447,6 +1446,7 @@ def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_
     assert record["ratio"] is None  # clean records: no noise floor to compare with
     assert np.isfinite(kept.explicit_model_.metadata["selection"]["training_error_pct"]["refined"])
     assert not any(name.endswith(" unrestricted") for name in kept.candidates_)
+
 
 def test_centred_couplings_are_the_same_field_and_make_the_plain_signal_costly_to_drop(train):
     from pisml_ros.ident.estimators import _couplings_centred, frequency_centre

@@ -76,4 +76,3 @@ def test_benchmark_scripts_take_settings_and_stop_on_a_bad_one_before_any_fit(ca
         with pytest.raises(SystemExit) as stop:
             main(argv)
         assert named in str(stop.value) + capsys.readouterr().err
-

@@ -799,9 +799,8 @@ class PISML(_Estimator):
         # free rows' first start gave no model consistent with the rest points, its second 0.356 %)
         progress = self._progress_on()
         for k, start in enumerate(starts[:2]):
-            suffix = " unrestricted" if k == 0 else f" from {start} unrestricted"
             add(k, *refine_from(start, lambda fraction, losses, k=k: progress((k + fraction) / 2, losses),
-                                config=free), suffix=suffix)
+                                config=free), suffix=("" if k == 0 else f" from {start}") + " unrestricted")
         record["added"] = sorted(set(candidates) - before)
         self.metrics_["refinement_unrestricted"] = 1.0
 
