@@ -1099,6 +1099,19 @@ def test_selection_records_in_words_what_is_wrong_with_the_chosen_model():
     assert far(7.2, None) == []  # no floor given: no such check
     # not as well as the hold's: the hold's warning says it
     assert len(far(50.0, 1.8)) == 1
+    # on noisy records a candidate from before the refinement (vendor-c seed 2 at 40 dB: the trained
+    # backbone, 2.80 / 2.91 % at 1.39x its floor, where nothing else warned) is a caution of its own;
+    # on clean records (refinement not expected to win) a re-fit is chosen on its merits
+    def before(chosen, expected):
+        return selection_warnings(_selected(template, {chosen: model(0.0)}, {chosen: 2.534}, unstable_rate=1.0,
+                                            hold=40.0, noise_floor=1.82, noise_ratio=3.0, noise_margin=0.5,
+                                            refinement_expected=expected))
+
+    (warning,) = before("trained backbone", True)
+    assert warning.startswith("the model is the trained backbone, from before the explicit model's refinement")
+    assert len(before("re-fit +100 %", True)) == 1
+    assert before("pruned +0.1 % x2 from noise-compensated backbone", True) == []
+    assert before("trained backbone", False) == [] and before("re-fit +100 %", False) == []
     # models without a selection (baselines, older files) have none
     assert selection_warnings(model(0.0)) == [] and selection_warnings(None) == []
 
