@@ -639,6 +639,7 @@ class PISML(_Estimator):
         # what the noise alone leaves: the yardstick of the rescue and of the selection's caution
         noise_floor = noise_floor_error(scoring)
         verdicts: dict = {}  # stability at the records' rest points, by candidate (selection, refinement start)
+        noisy = _noisy(train)
         if cfg.refine:
             # refinement takes most of the time: the best explicit model so far goes out first
             preliminary = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold, tolerance=0.0)
@@ -669,7 +670,6 @@ class PISML(_Estimator):
             # gradients are thread-safe (TermSet.thread_safe_gradient): else the two starts side by
             # side are quicker
             shared = term_set(candidates[starts[0]].terms, signals).thread_safe_gradient()
-            noisy = _noisy(train)
             # on clean data the second half of the refinement's progress is kept for the fallback below
             share = 0.28 if noisy or not cfg.refine_growing_windows else 0.14
             if cfg.refine_starts == "both" or len(starts) == 1 or not shared:
@@ -705,7 +705,7 @@ class PISML(_Estimator):
         self.candidates_ = candidates
         # (on noisy records the refinement is what fits the trajectories: a model from before it is a caution)
         explicit = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold, noise_floor=noise_floor,
-                                         refinement_expected=cfg.refine and _noisy(train))
+                                         refinement_expected=cfg.refine and noisy)
         explicit.metadata["selection"]["scored_on"] = ("training and small-signal records" if scoring is not train
                                                        else "training records")
         self.metrics_["training_error_pct"] = scores[explicit.metadata["selection"]["chosen"]]
