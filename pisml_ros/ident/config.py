@@ -269,7 +269,12 @@ class IdentConfig:
     # the protocol it runs on seed 22 only (its "any" row, filter-physics-fallback.json). Measured
     # with it off the protocol: other inverters 2 of 9 within both 40 dB targets against 5
     # (bench/PLANTS_RESULTS_filter_physics.md), the scenarios' 40 dB rows 5 of 14 against 10, 11 of
-    # 14 at <= 84 coefficients against 3 (bench/SCENARIOS_RESULTS_filter_physics.md). Not the default
+    # 14 at <= 84 coefficients against 3 (bench/SCENARIOS_RESULTS_filter_physics.md). Not the default.
+    # Stop 49, the filter rows kept only from the frequency products other than their own coupling and
+    # the angle outside the grid terms (controller states, powers and products kept; scratch, not a
+    # setting): recordings 0-5 none within both targets against 5 of 6, OOD median 1.66 against
+    # 0.55 % (bench/sweeps/filter-frame.json): those products offset the controller states that stand
+    # in for the currents, and without them the sag goes wrong; all or nothing
     filter_terms: str = "any"
     # stability prior of the refinement (the one-stage refinement, and the polish of the pruned model
     # on noisy data): at operating points where the plant sat at rest (refine_stability_points)
