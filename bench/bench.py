@@ -53,8 +53,9 @@ BENCH = Path(__file__).resolve().parent
 
 
 def datasets(effects, snr, seed=0, n_traj=12, duration=None, params=None, dt=1.0 / SAMPLE_RATE_HZ,
-             smallsignal_ug=0.8, **training):
+             smallsignal_ug=0.8, input_noise=False, **training):
     """The plant and its training, small-signal and test records (the paper protocol by default;
+    ``input_noise``: the noise on the measured inputs ug, theta_g too, not on the states only;
     ``training``: more keywords of training_schedules, as scenarios_bench.py changes them)."""
     plant = InverterPlant(params, effects=effects or None)
     duration = duration or 0.04
@@ -62,8 +63,9 @@ def datasets(effects, snr, seed=0, n_traj=12, duration=None, params=None, dt=1.0
     small = generate(plant, smallsignal_schedules(smallsignal_ug), 0.1, dt=dt)
     test = generate(plant, evaluation_schedules(0.04), 0.04, dt=dt)
     if snr is not None:
-        train = add_measurement_noise(train, snr, seed=seed + 101)
-        small = add_measurement_noise(small, snr, seed=seed + 202)
+        # (the same draws for the states with or without input_noise: the inputs' noise is drawn either way)
+        train = add_measurement_noise(train, snr, seed=seed + 101, include_inputs=input_noise)
+        small = add_measurement_noise(small, snr, seed=seed + 202, include_inputs=input_noise)
     return plant, train, small, test
 
 

@@ -7,7 +7,7 @@ Every setting of the engine was measured on the paper protocol (DESIGN.md): 12 r
 10 kHz, ug0 in [0.8, 1.2], phase jumps of 5-10 degrees, small-signal steps around ug 0.8. A user's
 recordings differ. Each scenario here changes one thing (the sample rate, the grid voltages the
 records start from, the size of the phase jumps, where the small-signal steps sit, the number and
-length of the records) and keeps the rest; the test records are the protocol's (at the scenario's
+length of the records, noise on the measured inputs too) and keeps the rest; the test records are the protocol's (at the scenario's
 sample rate) and the errors are against the default plant's clean truth, as in bench/bench.py.
 Seed k gives the same event times, sag depths and noise as bench.py's recording k. Writes
 bench/scenarios_results.json and bench/SCENARIOS_RESULTS.md (~17-20 min on 2 cores with the defaults, stops 37-38).
@@ -33,6 +33,8 @@ SCENARIOS = {
     "jumps 10-20°": {"jump_deg": (10.0, 20.0)},
     "small-signal at ug 1.0": {"smallsignal_ug": 1.0},
     "8 records of 60 ms": {"n_traj": 8, "duration": 0.06},
+    # the noise on the measured grid voltage and angle too (the protocol's: on the states only)
+    "noisy inputs": {"input_noise": True},
 }
 
 

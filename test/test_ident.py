@@ -405,6 +405,57 @@ def test_noise_floor_error_is_what_the_noise_alone_leaves(train, small):
     assert noise_floor_error(clean) < 1e-3 * noise_floor_error(add_measurement_noise(clean, 40.0, seed=4))
 
 
+def test_noisy_measured_inputs_are_held_at_their_means_where_they_are_constant(train, small):
+    from pisml_ros.data.dataset import concat_datasets
+    from pisml_ros.ident.noise import input_noise_std, piecewise_constant_inputs
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    clean = concat_datasets([train, small])
+    # inputs applied as exact steps have no noise to remove: nothing changes
+    assert np.array_equal(input_noise_std(clean), np.zeros(2))
+    noisy = add_measurement_noise(clean, 40.0, seed=5, include_inputs=True)
+    sigma = input_noise_std(noisy)
+    true = np.array([noisy.metadata["noise_std"][name] for name in noisy.input_names])
+    assert sigma == pytest.approx(true, rel=0.15)
+    held, report = piecewise_constant_inputs(noisy)
+    error = np.concatenate([h.u - c.u for h, c in zip(held, clean)])
+    raw = np.concatenate([n.u - c.u for n, c in zip(noisy, clean)])
+    # every step found (the small-signal records' 0.01 p.u. step is about 1 sigma of this noise),
+    # the noise left a fraction of what it was; the states untouched
+    assert report["ug"]["samples"] > 0.95 * clean.n_samples and report["ug"]["sigma"] == pytest.approx(sigma[0])
+    assert np.all(error.std(axis=0) < 0.3 * raw.std(axis=0))
+    assert all(np.array_equal(h.x, n.x) for h, n in zip(held, noisy))
+    assert held.metadata["inputs_denoised"] == {"ug": sigma[0], "theta_g": sigma[1]}
+    # an input that is not constant between changes (an oscillation, a ramp) is mostly left as
+    # measured, and what is held stays within its noise (measured: 0.00106 and 0.00115 against 0.0010)
+    t = noisy.trajectories[0].t
+    true = np.column_stack([1.0 + 0.05 * np.sin(2 * np.pi * 50 * t), 0.3 * t / t[-1]])
+    measured = true + 0.001 * np.random.default_rng(0).standard_normal(true.shape)
+    swinging = Dataset(noisy.state_names, noisy.input_names, [Trajectory(0, t, noisy.trajectories[0].x, measured)])
+    swung, report = piecewise_constant_inputs(swinging, sigma=[0.001, 0.001])
+    assert report["ug"]["samples"] < 0.3 * len(t) and report["theta_g"]["samples"] < 0.3 * len(t)
+    assert np.all((swung.trajectories[0].u - true).std(axis=0) < 1.25 * (measured - true).std(axis=0))
+
+
+def test_a_fit_on_noisy_inputs_holds_them_and_says_so(train, small):
+    from pisml_ros.ident import selection_warnings
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    noisy_train = add_measurement_noise(train, 40.0, seed=6, include_inputs=True)
+    noisy_small = add_measurement_noise(small, 40.0, seed=7, include_inputs=True)
+    est = make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(noisy_train, noisy_small)
+    held = est.explicit_model_.metadata["identification"]["inputs_denoised"]
+    assert set(held) == {"training", "smallsignal"} and held["training"]["ug"]["snr_db"] == pytest.approx(40, abs=2)
+    assert any("the measured inputs carry noise (ug at 40 dB SNR" in w for w in selection_warnings(est.explicit_model_))
+    # off: taken as given, nothing recorded; a baseline records it too
+    off = make_estimator("mod-sindy", IdentConfig.from_mapping({"input_denoise": "off"})).fit(noisy_train)
+    assert off.inputs_denoised_ == {} and "inputs_denoised" not in off.explicit_model_.metadata["identification"]
+    on = make_estimator("mod-sindy").fit(noisy_train)
+    assert on.explicit_model_.metadata["identification"]["inputs_denoised"]["training"]["ug"]["replaced"] > 0
+    with pytest.raises(ConfigError, match="input_denoise must be auto or off, got 'yes'"):
+        IdentConfig.from_mapping({"input_denoise": "yes"})
+
+
 def test_pure_node_has_no_explicit_model_but_a_spectrum(train):
     cfg = IdentConfig.from_mapping({"epochs": 3, "batch_windows": 8})
     est = make_estimator("node", cfg).fit(train)

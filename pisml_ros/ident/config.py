@@ -59,6 +59,12 @@ class IdentConfig:
     # Measured: 0.08-0.13 (4 records of 20 ms) wreck the backbone with them; a 12 × 40 ms recording
     # at 0.23 (train seed 1) gave 0.31 / 0.40 % IOD/OOD with them and 0.22 / 2.4 % without
     coupling_min_separation: float = 0.2
+    # measured inputs with noise in them (ident.noise.input_noise_std > 0; exact steps give 0):
+    # "auto" holds them at their means over the stretches where they are constant
+    # (ident.noise.piecewise_constant_inputs) before every stage, "off" takes them as given.
+    # Measured (stop 49, 40 dB on the inputs too, protocol recordings 0-2): see the README's
+    # "Noise on the measured inputs"
+    input_denoise: str = "auto"
     # neural residual N(x, u) and hybrid training
     hidden: tuple = (128, 128)
     dropout: float = 0.0
@@ -588,6 +594,8 @@ class IdentConfig:
         if self.integrator_terms not in ("linear", "any"):
             raise ConfigError(f"identification config: integrator_terms must be linear or any, "
                               f"got {self.integrator_terms!r}")
+        if self.input_denoise not in ("auto", "off"):
+            raise ConfigError(f"identification config: input_denoise must be auto or off, got {self.input_denoise!r}")
         if self.refine_starts not in ("both", "fallback"):
             raise ConfigError(f"identification config: refine_starts must be both or fallback, got {self.refine_starts!r}")
         if self.filter_terms not in ("physics", "any"):

@@ -27,6 +27,7 @@ from ..model import ExplicitModel
 from ..model.expressions import term_set
 from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
+from .noise import input_noise_std, piecewise_constant_inputs
 from .library import (centred_terms, coupling_separation, extended_library, filter_row_mask, integrator_row_mask,
                       monomial_basis, physics_library, rebased, term_degrees)
 from .roles import SignalRoles
@@ -58,7 +59,10 @@ class _Estimator:
     def __init__(self, config: IdentConfig | None = None):
         self.config = config or IdentConfig()
 
-    def _start(self, train: Dataset, callback, should_stop):
+    def _start(self, train: Dataset, smallsignal: Dataset | None, callback, should_stop):
+        """Checks and the fit's state; returns the records every stage works on: ``train`` and
+        ``smallsignal`` with noisy measured inputs held constant where they are
+        (``config.input_denoise``; what was done is in ``inputs_denoised_``, empty if nothing)."""
         if len(train) == 0:
             raise ValueError("no training trajectories")
         self.config.roles.check(train.state_names, train.input_names)
@@ -67,6 +71,18 @@ class _Estimator:
         self._t0 = time.monotonic()
         self.metrics_ = {}
         self.history_ = {}
+        self.inputs_denoised_ = {}
+        if self.config.input_denoise == "off":
+            return train, smallsignal
+        held = {}
+        for label, records in (("training", train), ("smallsignal", smallsignal)):
+            if records is None or len(records) == 0 or not np.any(input_noise_std(records) > 0):
+                held[label] = records
+                continue
+            held[label], self.inputs_denoised_[label] = piecewise_constant_inputs(records)
+        if self.inputs_denoised_:
+            self.metrics_["inputs_denoised"] = 1.0
+        return held["training"], held["smallsignal"]
 
     def _emit(self, stage, progress, epoch=0, losses=None, model=None):
         if self._should_stop():
@@ -82,6 +98,11 @@ class _Estimator:
         if explicit is not None:
             explicit.metadata.setdefault("identification", {}).update(
                 {"method": self.method, "seconds": round(self.metrics_["seconds"], 3)})
+            if self.inputs_denoised_:
+                explicit.metadata["identification"]["inputs_denoised"] = self.inputs_denoised_
+                caution = _input_noise_warning(self.inputs_denoised_)
+                if caution and "selection" in explicit.metadata:
+                    explicit.metadata["selection"].setdefault("warnings", []).append(caution)
         return self
 
 
@@ -262,6 +283,23 @@ def _turned_unstable(name: str, best: str, candidates: dict, points: list, grid_
     theirs = _grid_rates(best, candidates, points, grid_inputs, cache)
     return [k for k, (rate, reference) in enumerate(zip(mine, theirs))
             if rate is not None and reference is not None and reference < 0.0 and not rate < 0.0]
+
+
+def _input_noise_warning(denoised: dict) -> str | None:
+    """The caution for a model identified from noisy measured inputs (``denoised``: per record set,
+    :func:`~.noise.piecewise_constant_inputs`' report), or None where their noise is below 100 dB."""
+    levels = {}
+    for report in denoised.values():
+        for name, entry in report.items():
+            if entry["sigma"] > 1e-5 * entry["rms"]:
+                levels[name] = min(levels.get(name, np.inf), entry["snr_db"])
+    if not levels:
+        return None
+    text = ", ".join(f"{name} at {snr:.0f} dB SNR" for name, snr in levels.items())
+    return (f"the measured inputs carry noise ({text}): the identification held them at their means where they "
+            f"are constant, but the model takes its inputs as exact and the noise left in them biases it "
+            f"(40 dB on the inputs as well as the states, the protocol's recordings 0-2: INPUT_FIGURES); "
+            f"measure or filter the grid voltage and angle with less noise where you can")
 
 
 def selection_warnings(model) -> list:
@@ -489,7 +527,7 @@ class ModSINDy(_Estimator):
 
         from .derivatives import finite_difference_derivatives
 
-        self._start(train, callback, should_stop)
+        train, smallsignal = self._start(train, smallsignal, callback, should_stop)
         # the paper's physics library: no rotating-frame couplings
         terms = physics_library(self.config.roles, train.state_names, coupling=False)
         ts = term_set(terms, tuple(train.state_names) + tuple(train.input_names))
@@ -518,7 +556,7 @@ class StdSINDy(_Estimator):
 
         from .derivatives import finite_difference_derivatives
 
-        self._start(train, callback, should_stop)
+        train, smallsignal = self._start(train, smallsignal, callback, should_stop)
         names = list(train.state_names) + list(train.input_names)
         z = np.concatenate([np.concatenate([tr.x, tr.u], 1) for tr in train])
         lo, hi = z.min(axis=0), z.max(axis=0)
@@ -546,7 +584,7 @@ class PureNODE(_Estimator):
     def fit(self, train: Dataset, smallsignal: Dataset | None = None, callback=None, should_stop=None):
         from .neural import NeuralModel
 
-        self._start(train, callback, should_stop)
+        train, smallsignal = self._start(train, smallsignal, callback, should_stop)
         field = _train_field(self, train, None, backbone=None, lambda_pert=0.0)
         model = NeuralModel(field, train.state_names, train.input_names, reference_points(train), kind="neural ODE")
         self._emit("hybrid", 1.0, model=model)
@@ -574,7 +612,7 @@ class PISML(_Estimator):
         from .neural import NeuralModel
         from .noise import noise_floor_error
 
-        self._start(train, callback, should_stop)
+        train, smallsignal = self._start(train, smallsignal, callback, should_stop)
         cfg = self.config
         smallsignal = smallsignal if self.use_jacobian else None
         signals = list(train.state_names) + list(train.input_names)
