@@ -59,11 +59,15 @@ def cmd_simulate(args) -> int:
     dataset = generate(plant, schedules, duration, method=args.solver,
                        metadata={"scenario": args.scenario, "seed": args.seed,
                                  "command": "pisml " + " ".join(sys.argv[1:])})
+    if args.noisy_inputs and args.snr_db is None:
+        raise UserError("--noisy-inputs needs --snr-db (the noise level)")
     if args.snr_db is not None:
-        dataset = add_measurement_noise(dataset, args.snr_db, seed=args.seed + 1_000_003)
+        dataset = add_measurement_noise(dataset, args.snr_db, seed=args.seed + 1_000_003,
+                                        include_inputs=args.noisy_inputs)
     out = write_dataset(dataset, args.out)
+    noise = "clean" if args.snr_db is None else f"{args.snr_db:g} dB SNR{' on inputs too' if args.noisy_inputs else ''}"
     print(f"wrote {out}: {len(dataset)} trajectories x {len(dataset.trajectories[0])} samples "
-          f"({args.scenario}, {'clean' if args.snr_db is None else f'{args.snr_db:g} dB SNR'}"
+          f"({args.scenario}, {noise}"
           f"{', effects ' + ','.join(plant.effects) if plant.effects else ''})")
     return 0
 
@@ -358,6 +362,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", action="append", metavar="PATH", help="with --model: CSV or bag (repeatable)")
     _add_plant_options(p)
     p.add_argument("--snr-db", type=float, help="add per-channel measurement noise at this SNR (dB)")
+    p.add_argument("--noisy-inputs", action="store_true",
+                   help="with --snr-db: the noise on the grid inputs (ug, theta_g) too, not on the states only")
     p.add_argument("--seed", type=int, default=0, help="random seed (scenario and noise)")
     p.add_argument("--n-traj", type=int, help="number of trajectories (default: the protocol's)")
     p.add_argument("--duration", type=float, help="seconds per trajectory (default: 0.04, smallsignal 0.1)")

@@ -27,6 +27,13 @@ def test_simulate_csv_opens_in_a_plain_csv_reader(tmp_path):
     assert len(rows) == 1 + 2 * 401
     side = json.loads(out.with_suffix(".json").read_text())
     assert side["snr_db"] == 40 and side["seed"] == 3 and side["dt"] == 1e-4
+    assert side["noise_std"]["ug"] == 0.0  # the protocol's: exact inputs
+    noisy = tmp_path / "noisy.csv"
+    assert "40 dB SNR on inputs too" in pisml("simulate", "--scenario", "train", "--snr-db", "40", "--noisy-inputs",
+                                              "--n-traj", "2", "--out", noisy).stdout
+    assert json.loads(noisy.with_suffix(".json").read_text())["noise_std"]["ug"] > 0.005
+    refused = pisml("simulate", "--scenario", "train", "--noisy-inputs", "--out", tmp_path / "x.csv", check=False)
+    assert refused.returncode != 0 and "--noisy-inputs needs --snr-db" in refused.stderr
 
 
 def test_simulate_bag_with_effect_and_info(tmp_path):

@@ -120,8 +120,9 @@ def piecewise_constant_inputs(dataset: Dataset, sigma: np.ndarray | None = None,
     :func:`~pisml_ros.data.dataset.rest_start_length`); a ramp or an oscillation is left as
     measured. Why: the model is simulated with the measured inputs held between samples, and noise
     in them forces the fast grid-current dynamics (di_g/dt ∝ (v_c − u_g)/L_g) with what the plant
-    never saw; at 40 dB on the inputs too every fit of the protocol's recordings 0-2 failed
-    (README, "Noise on the measured inputs").
+    never saw. At 40 dB on the inputs too (the protocol's recordings 0-5, stop 49) the fits with the
+    inputs as measured failed (IOD 3.3-17 % or diverged), with them held 0.52-5.1 % (README, "Noise
+    on the measured inputs").
 
     Parameters
     ----------
