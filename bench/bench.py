@@ -53,9 +53,10 @@ BENCH = Path(__file__).resolve().parent
 
 
 def datasets(effects, snr, seed=0, n_traj=12, duration=None, params=None, dt=1.0 / SAMPLE_RATE_HZ,
-             smallsignal_ug=0.8, input_noise=False, **training):
+             smallsignal_ug=0.8, input_noise=False, input_quieter_db=0.0, **training):
     """The plant and its training, small-signal and test records (the paper protocol by default;
-    ``input_noise``: the noise on the measured inputs ug, theta_g too, not on the states only;
+    ``input_noise``: the noise on the measured inputs ug, theta_g too, not on the states only, at
+    ``snr`` + ``input_quieter_db``;
     ``training``: more keywords of training_schedules, as scenarios_bench.py changes them)."""
     plant = InverterPlant(params, effects=effects or None)
     duration = duration or 0.04
@@ -64,8 +65,10 @@ def datasets(effects, snr, seed=0, n_traj=12, duration=None, params=None, dt=1.0
     test = generate(plant, evaluation_schedules(0.04), 0.04, dt=dt)
     if snr is not None:
         # (the same draws for the states with or without input_noise: the inputs' noise is drawn either way)
-        train = add_measurement_noise(train, snr, seed=seed + 101, include_inputs=input_noise)
-        small = add_measurement_noise(small, snr, seed=seed + 202, include_inputs=input_noise)
+        train = add_measurement_noise(train, snr, seed=seed + 101, include_inputs=input_noise,
+                                      input_snr_db=snr + input_quieter_db)
+        small = add_measurement_noise(small, snr, seed=seed + 202, include_inputs=input_noise,
+                                      input_snr_db=snr + input_quieter_db)
     return plant, train, small, test
 
 

@@ -35,6 +35,8 @@ SCENARIOS = {
     "8 records of 60 ms": {"n_traj": 8, "duration": 0.06},
     # the noise on the measured grid voltage and angle too (the protocol's: on the states only)
     "noisy inputs": {"input_noise": True},
+    # ... at 20 dB less noise than the states (at --noise 40: 60 dB on ug, theta_g)
+    "inputs 20 dB quieter": {"input_noise": True, "input_quieter_db": 20.0},
 }
 
 

@@ -414,6 +414,9 @@ def test_noisy_measured_inputs_are_held_at_their_means_where_they_are_constant(t
     # inputs applied as exact steps have no noise to remove: nothing changes
     assert np.array_equal(input_noise_std(clean), np.zeros(2))
     noisy = add_measurement_noise(clean, 40.0, seed=5, include_inputs=True)
+    quieter = add_measurement_noise(clean, 40.0, seed=5, include_inputs=True, input_snr_db=60.0)
+    assert quieter.metadata["noise_std"]["ug"] == pytest.approx(0.1 * noisy.metadata["noise_std"]["ug"])
+    assert quieter.metadata["noise_std"]["ig_d"] == noisy.metadata["noise_std"]["ig_d"]
     sigma = input_noise_std(noisy)
     true = np.array([noisy.metadata["noise_std"][name] for name in noisy.input_names])
     assert sigma == pytest.approx(true, rel=0.15)

@@ -6,7 +6,8 @@ import numpy as np
 from ..data import Dataset, Trajectory
 
 
-def add_measurement_noise(dataset: Dataset, snr_db: float, seed: int = 0, include_inputs: bool = False) -> Dataset:
+def add_measurement_noise(dataset: Dataset, snr_db: float, seed: int = 0, include_inputs: bool = False,
+                          input_snr_db: float | None = None) -> Dataset:
     """Return a copy with white Gaussian noise at ``snr_db`` on every channel.
 
     The noise standard deviation of a channel is its RMS over the whole dataset
@@ -20,6 +21,9 @@ def add_measurement_noise(dataset: Dataset, snr_db: float, seed: int = 0, includ
     include_inputs : bool
         Also perturb the measured inputs (default: inputs are exact, as the
         paper's protocol applies them).
+    input_snr_db : float, optional
+        With ``include_inputs``: the inputs' SNR, if not ``snr_db`` (a grid voltage
+        measured more precisely than the currents).
 
     Returns
     -------
@@ -32,7 +36,7 @@ def add_measurement_noise(dataset: Dataset, snr_db: float, seed: int = 0, includ
     sigma_u = np.zeros(len(dataset.input_names))
     if include_inputs:
         u_all = np.concatenate([tr.u for tr in dataset.trajectories])
-        sigma_u = np.sqrt(np.mean(u_all ** 2, axis=0)) / 10 ** (snr_db / 20)
+        sigma_u = np.sqrt(np.mean(u_all ** 2, axis=0)) / 10 ** ((snr_db if input_snr_db is None else input_snr_db) / 20)
     noisy = [
         Trajectory(tr.traj_id, tr.t.copy(), tr.x + rng.standard_normal(tr.x.shape) * sigma_x,
                    tr.u + rng.standard_normal(tr.u.shape) * sigma_u)
