@@ -10,7 +10,8 @@ records start from, the size of the phase jumps, where the small-signal steps si
 length of the records, noise on the measured inputs too) and keeps the rest; the test records are the protocol's (at the scenario's
 sample rate) and the errors are against the default plant's clean truth, as in bench/bench.py.
 Seed k gives the same event times, sag depths and noise as bench.py's recording k. Writes
-bench/scenarios_results.json and bench/SCENARIOS_RESULTS.md (~17-20 min on 2 cores with the defaults, stops 37-38).
+bench/scenarios_results.json and bench/SCENARIOS_RESULTS.md (~17-20 min on 2 cores with the defaults, stops 37-38;
+the two input-noise scenarios of stop 49 add about 6 min).
 """
 from __future__ import annotations
 

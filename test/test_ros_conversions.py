@@ -118,3 +118,13 @@ def test_demo_takes_the_reports_on_the_final_model_not_on_an_earlier_stage_of_it
     assert found is None  # its root locus follows its reports
     loci += [(6, locus("other-1", "other")), (7, locus("pisml-1", "final"))]
     assert final_analysis(final, arrivals, loci)[1]["tag"] == "final"
+
+
+def test_measurement_sim_source_puts_noise_on_the_inputs_only_when_asked():
+    from pisml_ros.ros.measurement import load_source
+
+    states_only = load_source("sim", "", "smallsignal", 0, 40.0, "", [""], [""])
+    both = load_source("sim", "", "smallsignal", 0, 40.0, "", [""], [""], noisy_inputs=True)
+    assert states_only.metadata["noise_std"]["ug"] == 0.0 and both.metadata["noise_std"]["ug"] > 0.005
+    with pytest.raises(ValueError, match="parameter noisy_inputs: needs snr_db > 0"):
+        load_source("sim", "", "smallsignal", 0, 0.0, "", [""], [""], noisy_inputs=True)

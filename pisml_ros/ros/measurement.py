@@ -23,8 +23,9 @@ from .conversions import batch_message  # noqa: E402
 
 
 def load_source(source: str, path: str, scenario: str, seed: int, snr_db: float, params_file: str,
-                effects: list[str], effect_params: list[str]):
-    """The dataset a measurement source plays (core calls only)."""
+                effects: list[str], effect_params: list[str], noisy_inputs: bool = False):
+    """The dataset a measurement source plays (core calls only; ``noisy_inputs``: sim's noise on
+    the grid inputs too, as ``pisml simulate --noisy-inputs``)."""
     if source in ("csv", "bag"):
         if not path:
             raise ValueError(f"parameter path: required for source={source}")
@@ -39,7 +40,11 @@ def load_source(source: str, path: str, scenario: str, seed: int, snr_db: float,
         plant = InverterPlant(params, parse_effect_assignments([e for e in effects if e], [a for a in effect_params if a]))
         schedules, duration = schedules_for(scenario, seed=seed)
         dataset = generate(plant, schedules, duration, metadata={"scenario": scenario, "seed": seed})
-        return add_measurement_noise(dataset, snr_db, seed=seed + 1_000_003) if snr_db > 0 else dataset
+        if snr_db > 0:
+            return add_measurement_noise(dataset, snr_db, seed=seed + 1_000_003, include_inputs=noisy_inputs)
+        if noisy_inputs:
+            raise ValueError("parameter noisy_inputs: needs snr_db > 0 (the noise level)")
+        return dataset
     raise ValueError(f"parameter source: {source!r} is not one of sim, csv, bag")
 
 
@@ -51,6 +56,8 @@ class MeasurementNode(Node):
         scenario = declare(self, "scenario", "train", "sim: scenario of the paper protocol: train | test | smallsignal")
         seed = declare(self, "seed", 0, "sim: random seed of the scenario and noise", 0, 2**31 - 1)
         snr_db = declare(self, "snr_db", 0.0, "sim: measurement SNR in dB (0 = clean)", 0.0, 200.0)
+        noisy_inputs = declare(self, "noisy_inputs", False, "sim: the noise on the grid inputs (ug, theta_g) too, "
+                                                            "not on the states only")
         params_file = declare(self, "params_file", "", "sim: plant parameter YAML/JSON (empty = nameplate)")
         effects = declare(self, "effects", [""], "sim: named effects to switch on (pisml effects lists them)")
         effect_params = declare(self, "effect_params", [""], "sim: effect parameters as NAME.KEY=VALUE")
@@ -65,7 +72,8 @@ class MeasurementNode(Node):
                                    0.0, 60.0)
         depth = declare(self, "qos_depth", 5000, "depth of the reliable measurement queue", 10, 1000000)
 
-        self.dataset = load_source(self.source, path, scenario, seed, snr_db, params_file, effects, effect_params)
+        self.dataset = load_source(self.source, path, scenario, seed, snr_db, params_file, effects, effect_params,
+                                   noisy_inputs)
         self.publisher = self.create_publisher(MeasurementBatch, MEASUREMENT_TOPIC, measurement_qos(depth))
         self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.batches = list(dataset_to_batches(self.dataset, self.batch_size))
