@@ -76,3 +76,16 @@ def test_benchmark_scripts_take_settings_and_stop_on_a_bad_one_before_any_fit(ca
         with pytest.raises(SystemExit) as stop:
             main(argv)
         assert named in str(stop.value) + capsys.readouterr().err
+
+
+def test_the_input_noise_scenarios_put_noise_on_the_inputs_at_their_level():
+    import scenarios_bench
+
+    _, protocol, _, _ = scenarios_bench.scenario_datasets(scenarios_bench.SCENARIOS["protocol"], 40.0, 0)
+    _, noisy, noisy_small, _ = scenarios_bench.scenario_datasets(scenarios_bench.SCENARIOS["noisy inputs"], 40.0, 0)
+    _, quieter, _, _ = scenarios_bench.scenario_datasets(scenarios_bench.SCENARIOS["inputs 20 dB quieter"], 40.0, 0)
+    assert protocol.metadata["noise_std"]["ug"] == 0.0 and noisy_small.metadata["noise_std"]["ug"] > 0
+    assert quieter.metadata["noise_std"]["ug"] == pytest.approx(0.1 * noisy.metadata["noise_std"]["ug"])
+    # the states' noise is the protocol's draw in all three
+    for other in (noisy, quieter):
+        assert all((a.x == b.x).all() for a, b in zip(protocol, other))
