@@ -27,9 +27,9 @@ from ..model import ExplicitModel
 from ..model.expressions import term_set
 from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
-from .noise import input_noise_std, piecewise_constant_inputs
 from .library import (centred_terms, coupling_separation, extended_library, filter_row_mask, integrator_row_mask,
                       monomial_basis, physics_library, rebased, term_degrees)
+from .noise import input_noise_std, piecewise_constant_inputs
 from .roles import SignalRoles
 from .trajfit import SHOOTING_PARTS_MAX, blas_threads
 

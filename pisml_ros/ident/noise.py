@@ -130,8 +130,8 @@ def piecewise_constant_inputs(dataset: Dataset, sigma: np.ndarray | None = None,
     sigma : ndarray, shape (n_inputs,), optional
         Noise standard deviation per input; default :func:`input_noise_std` of ``dataset``.
     threshold : float
-        Mean shift, in standard errors, that splits a stretch (6: pure noise of 1000 samples
-        exceeds it about once in 1e6 stretches).
+        Mean shift, in standard errors, that splits a stretch (6: no split in 10 000 stretches of
+        pure noise of 1000 samples, nor in 20 000 of 50 and of 400; stop 49, scratch).
 
     Returns
     -------
