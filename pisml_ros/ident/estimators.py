@@ -298,8 +298,8 @@ def _input_noise_warning(denoised: dict) -> str | None:
     text = ", ".join(f"{name} at {snr:.0f} dB SNR" for name, snr in levels.items())
     return (f"the measured inputs carry noise ({text}): the identification held them at their means where they "
             f"are constant, but the model takes its inputs as exact and the noise left in them biases it "
-            f"(40 dB on the inputs as well as the states, the protocol's recordings 0-5: 0.52-5.1 % IOD, "
-            f"1.7-8.4 % OOD, none within the 40 dB targets; README, 'Noise on the measured inputs'); "
+            f"(40 dB on the inputs as well as the states, the protocol's recordings 0-9: 0.52-5.1 % IOD, "
+            f"0.70-8.4 % OOD, none within the 40 dB targets; README, 'Noise on the measured inputs'); "
             f"measure or filter the grid voltage and angle with less noise where you can")
 
 
