@@ -64,6 +64,21 @@ def test_no_false_alarm_when_model_and_data_agree(snr):
     assert report["effects"] == [] and report["effect_missing"] is False
 
 
+def test_noisy_measured_inputs_raise_no_false_alarm_when_held():
+    from pisml_ros.gap import GapSettings
+
+    schedules, duration = schedules_for("train", seed=1, n_traj=2)
+    data = add_measurement_noise(generate(InverterPlant(), schedules, duration), 40, seed=8, include_inputs=True)
+    held = GapWorkflow(PlantReference()).run(data)
+    # replayed as measured, the noise in ug forces the reference with what the plant never saw
+    # (measured: 3 windows and param_drift.Rd named; held: 1 window, nothing named)
+    raw = GapWorkflow(PlantReference(), GapSettings(hold_noisy_inputs=False)).run(data)
+    assert held["effects"] == [] and held["effect_missing"] is False and len(held["windows"]) <= 1
+    assert held["inputs_denoised"]["ug"]["replaced"] > 0 and raw["inputs_denoised"] == {}
+    assert len(raw["windows"]) > len(held["windows"]) and raw["gap_before"]["overall"] > 2 * held["gap_before"]["overall"]
+    json.dumps(held)
+
+
 def test_two_effects_at_once_are_both_named():
     effects = {"current_limit": {"imax": 1.5}, "param_drift": {"Lg": 0.06}}
     _, report, _, _ = _run(effects, "test", None)

@@ -21,7 +21,7 @@ import scipy.optimize
 
 from ..data import Dataset
 from ..data.dataset import rest_start_length
-from ..ident.noise import estimate_noise_std
+from ..ident.noise import estimate_noise_std, input_noise_std, piecewise_constant_inputs
 from ..signals import SCORED_STATES
 from .catalogue import Candidate, catalogue
 
@@ -44,6 +44,11 @@ class GapSettings:
     min_reduction: float = 0.2  # an effect must remove at least this fraction of the whitened SSE
     min_relative_change: float = 0.02  # drift/mismatch below 2 % of nameplate is tolerance, not an effect
     substeps: int = 2
+    # noisy measured inputs held at their means where they are constant before the replay
+    # (ident.noise.piecewise_constant_inputs; exact inputs untouched), each held level corrected
+    # within its σ/√n like the starts: replayed as measured, 40 dB on ug and theta_g made the
+    # nominal plant "disagree" with its own records (stop 49)
+    hold_noisy_inputs: bool = True
 
 
 def initial_states(data: Dataset) -> tuple[list[np.ndarray], np.ndarray]:
@@ -59,6 +64,17 @@ def initial_states(data: Dataset) -> tuple[list[np.ndarray], np.ndarray]:
         out.append(tr.x[:count].mean(axis=0))
         counts.append(count)
     return out, np.array(counts, dtype=float)
+
+
+def _held_stretches(u: np.ndarray, sigma_u: np.ndarray, min_samples: int = 8) -> list:
+    """(input column, start, end, prior σ/√n) of each stretch of ``u`` held at one value (the
+    stretches :func:`~pisml_ros.ident.noise.piecewise_constant_inputs` replaced by their means)."""
+    out = []
+    for column in np.flatnonzero(sigma_u > 0):
+        edges = [0, *(np.flatnonzero(np.diff(u[:, column]) != 0) + 1).tolist(), len(u)]
+        out += [(int(column), a, b, float(sigma_u[column] / np.sqrt(b - a)))
+                for a, b in zip(edges[:-1], edges[1:]) if b - a >= min_samples]
+    return out
 
 
 def _with_starts(data: Dataset, starts) -> Dataset:
@@ -96,6 +112,12 @@ class GapWorkflow:
 
     # ------------------------------------------------------------------ residuals
     def _prepare(self, data: Dataset):
+        self.inputs_denoised = {}
+        self.held_stretches = [[] for _ in data]
+        sigma_u = input_noise_std(data)
+        if self.settings.hold_noisy_inputs and np.any(sigma_u > 0):
+            data, self.inputs_denoised = piecewise_constant_inputs(data, sigma=sigma_u)
+            self.held_stretches = [_held_stretches(tr.u, sigma_u) for tr in data]
         noise = estimate_noise_std(data)
         x_all = np.concatenate([tr.x for tr in data])
         rms = np.sqrt(np.mean(x_all ** 2, axis=0))
@@ -117,21 +139,27 @@ class GapWorkflow:
         The prior keeps the correction from absorbing a real effect.
         """
         data, n_states = self.sim_data, len(self.data.state_names)
-        trajs = []
+        trajs, sizes = [], []
         for k, tr in enumerate(data):
             for j in range(-1, n_states):
                 x = tr.x.copy()
                 if j >= 0:
                     x[0, j] += self.start_sigma[k, j]
                 trajs.append(dataclasses.replace(tr, x=x))
+            # inputs held at a stretch's mean are off by their prior σ/√n as well (hold_noisy_inputs)
+            for column, a, b, prior in self.held_stretches[k]:
+                u = tr.u.copy()
+                u[a:b, column] += prior
+                trajs.append(dataclasses.replace(tr, u=u))
+            sizes.append(n_states + 1 + len(self.held_stretches[k]))
         preds = ref.simulate(Dataset(data.state_names, data.input_names, trajs, dict(data.metadata)),
                              substeps=self.settings.substeps)
         self.start_jac = []
-        for k in range(len(data)):
-            block = preds[k * (n_states + 1):(k + 1) * (n_states + 1)]
+        for k, first in enumerate(np.cumsum([0, *sizes[:-1]])):
+            block = preds[first:first + sizes[k]]
             jac = np.stack([((p - block[0]) / self.sigma).ravel() for p in block[1:]], axis=1)
             jac = np.where(np.isfinite(jac), jac, 0.0)
-            self.start_jac.append((jac, np.linalg.inv(jac.T @ jac + np.eye(n_states)) @ jac.T))
+            self.start_jac.append((jac, np.linalg.inv(jac.T @ jac + np.eye(jac.shape[1])) @ jac.T))
 
     def corrected(self, preds, traj_index=None) -> list[np.ndarray]:
         """Predictions after the best start correction of each trajectory (see start_sensitivities)."""
@@ -337,6 +365,7 @@ class GapWorkflow:
         started = time.monotonic()
         s = self.settings
         self._prepare(data)
+        data = self.data  # the inputs as replayed
         ref = self.reference
         self.start_sensitivities(ref)
         preds_before = self.corrected(self._simulate(ref))
@@ -447,6 +476,8 @@ def report_dict(flow: GapWorkflow, data, windows, effects, before, after, second
         "windows": window_rows,
         "noise_level": {"per_state": dict(zip(data.state_names, flow.noise.tolist())),
                         "relative_median": float(np.median(noise_rel))},
+        # per input: its noise, and the stretches held at their means (empty: exact inputs)
+        "inputs_denoised": getattr(flow, "inputs_denoised", {}),
         "reference": flow.reference.describe() if hasattr(flow.reference, "describe") else {},
         "augmented": flow.augmented.describe() if hasattr(flow.augmented, "describe") else {},
         "seconds": seconds,
