@@ -66,14 +66,15 @@ def initial_states(data: Dataset) -> tuple[list[np.ndarray], np.ndarray]:
     return out, np.array(counts, dtype=float)
 
 
-def _held_stretches(u: np.ndarray, sigma_u: np.ndarray, min_samples: int = 8) -> list:
+def _held_stretches(u: np.ndarray, sigma_u: np.ndarray) -> list:
     """(input column, start, end, prior σ/√n) of each stretch of ``u`` held at one value (the
-    stretches :func:`~pisml_ros.ident.noise.piecewise_constant_inputs` replaced by their means)."""
+    stretches :func:`~pisml_ros.ident.noise.piecewise_constant_inputs` replaced by their means: in
+    a column with noise, nothing else repeats a value)."""
     out = []
     for column in np.flatnonzero(sigma_u > 0):
         edges = [0, *(np.flatnonzero(np.diff(u[:, column]) != 0) + 1).tolist(), len(u)]
         out += [(int(column), a, b, float(sigma_u[column] / np.sqrt(b - a)))
-                for a, b in zip(edges[:-1], edges[1:]) if b - a >= min_samples]
+                for a, b in zip(edges[:-1], edges[1:]) if b - a > 1]
     return out
 
 
@@ -136,7 +137,8 @@ class GapWorkflow:
         record and would read as a model gap. Every residual below is therefore taken
         after the best start correction δ under the prior N(0, σ²/k), linearised with
         these sensitivities (one Gauss-Newton step of the start: variable projection).
-        The prior keeps the correction from absorbing a real effect.
+        The prior keeps the correction from absorbing a real effect. Inputs held at a stretch's
+        mean (``hold_noisy_inputs``) are corrected the same way, each level within σ_u/√n.
         """
         data, n_states = self.sim_data, len(self.data.state_names)
         trajs, sizes = [], []

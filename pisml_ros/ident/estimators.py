@@ -76,10 +76,11 @@ class _Estimator:
             return train, smallsignal
         held = {}
         for label, records in (("training", train), ("smallsignal", smallsignal)):
-            if records is None or len(records) == 0 or not np.any(input_noise_std(records) > 0):
+            sigma = input_noise_std(records) if records is not None and len(records) else None
+            if sigma is None or not np.any(sigma > 0):
                 held[label] = records
                 continue
-            held[label], self.inputs_denoised_[label] = piecewise_constant_inputs(records)
+            held[label], self.inputs_denoised_[label] = piecewise_constant_inputs(records, sigma=sigma)
         if self.inputs_denoised_:
             self.metrics_["inputs_denoised"] = 1.0
         return held["training"], held["smallsignal"]
