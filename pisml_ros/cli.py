@@ -269,6 +269,124 @@ def cmd_analyse(args) -> int:
     return 0
 
 
+def _vary_values(text: str) -> tuple[str, list[float]]:
+    """``PATH=v1,v2,...`` or ``PATH=start:stop:points`` -> (PATH, values)."""
+    import numpy as np
+
+    path, sep, spec = text.partition("=")
+    if not sep or not path or not spec:
+        raise UserError(f"--vary {text!r}: expected PATH=v1,v2,... or PATH=start:stop:points")
+    try:
+        if ":" in spec:
+            start, stop, points = spec.split(":")
+            if int(points) < 2:
+                raise ValueError("points must be >= 2")
+            values = [float(v) for v in np.linspace(float(start), float(stop), int(points))]
+        else:
+            values = [float(v) for v in spec.split(",")]
+    except ValueError as err:
+        raise UserError(f"--vary {text!r}: {err}") from None
+    if not all(math.isfinite(v) for v in values):
+        raise UserError(f"--vary {text!r}: values must be finite")
+    return path, values
+
+
+def cmd_microgrid(args) -> int:
+    import numpy as np
+    import yaml
+
+    from .analysis.margins import stability_boundaries
+    from .analysis.microgrid import MicrogridError, microgrid_from_config, microgrid_report, with_setting
+    from .model import EquilibriumNotFound
+    from .plant import EquilibriumError
+
+    path = Path(args.config)
+    try:
+        config = yaml.safe_load(path.read_text())
+    except OSError as err:
+        raise UserError(f"--config {path}: {err.strerror or err}") from None
+    except yaml.YAMLError as err:
+        raise UserError(f"--config {path}: not YAML or JSON: {err}") from None
+    if isinstance(config, dict) and "microgrid" in config:
+        config = config["microgrid"]
+    source = str(path)
+    if args.ug is not None or args.theta_g is not None:
+        grid = dict(config.get("grid") or {}) if isinstance(config, dict) else {}
+        grid.update({k: v for k, v in (("ug", args.ug), ("theta_g", args.theta_g)) if v is not None})
+        config = dict(config, grid=grid) if isinstance(config, dict) else config
+    for item in args.model or []:
+        name, sep, model_path = item.partition("=")
+        units = config.get("units") if isinstance(config, dict) else None
+        matches = [k for k, entry in enumerate(units or []) if isinstance(entry, dict) and str(entry.get("name")) == name]
+        if not sep or not model_path or not matches:
+            known = [str(entry.get("name")) for entry in units or [] if isinstance(entry, dict)]
+            raise UserError(f"--model {item!r}: expected UNIT=PATH with UNIT one of the configuration's units {known}")
+        units = list(units)
+        entry = {k: v for k, v in units[matches[0]].items() if k != "plant"}
+        entry["model"] = str(Path(model_path).resolve())
+        units[matches[0]] = entry
+        config = dict(config, units=units)
+    loaded: dict = {}
+
+    def build(cfg):
+        return microgrid_from_config(cfg, base_dir=path.parent, source=source, loaded=loaded)
+
+    try:
+        microgrid, inputs = build(config)
+        report = microgrid_report(microgrid, *inputs, modes=args.modes)
+        if args.vary:
+            vary_path, values = _vary_values(args.vary)
+
+            def max_real(value):
+                grid_, inputs_ = build(with_setting(config, vary_path, value))
+                x = grid_.equilibrium(*inputs_)
+                return float(np.max(np.linalg.eigvals(grid_.jacobian(x, inputs_)).real))
+
+            rows = []
+            for value in values:
+                try:
+                    rows.append({"value": value, "max_real": max_real(value)})
+                except (EquilibriumError, EquilibriumNotFound) as err:
+                    rows.append({"value": value, "max_real": None, "error": str(err)})
+            ordered = sorted(values)
+            report["sweep"] = {"parameter": vary_path, "points": rows,
+                               "boundaries": stability_boundaries(max_real, ordered)}
+    except (MicrogridError, ModelFormatError, EquilibriumError, EquilibriumNotFound) as err:
+        raise UserError(str(err)) from None
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return 0
+    op = report["operating_point"]
+    print(f"microgrid: {len(microgrid.units)} units, {len(microgrid.buses)} buses, {len(microgrid.lines)} lines, "
+          f"{microgrid.n_states} states; grid source {op['ug']:g} p.u., {op['theta_g']:g} rad: "
+          f"{'STABLE' if report['stable'] else 'UNSTABLE'} (max real part {report['max_real']:.4g} 1/s, "
+          f"min damping {report['min_damping']:.3f})")
+    for unit in report["units"]:
+        line = (f"  unit {unit['name']} ({unit['kind']}) at bus {unit['bus']}: sees {unit['ug']:.4f} p.u., "
+                f"{unit['theta_g']:.4f} rad; delivers P {unit['p']:.4f}, Q {unit['q']:.4f} p.u.")
+        print(line + (f"; {unit['note']}" if unit.get("note") else ""))
+    print("  least-damped modes (share of each unit in the mode):")
+    for mode in report["weakest_modes"]:
+        re, im = mode["eigenvalue"]
+        shares = ", ".join(f"{name} {share:.0%}" for name, share in mode["unit_shares"].items() if share >= 0.005)
+        print(f"  {re:12.4f} {im:+13.4f}j  damping {mode['damping']:.4f}, {mode['frequency_hz']:.3f} Hz: {shares}")
+    if "sweep" in report:
+        sweep = report["sweep"]
+        print(f"  sweep of {sweep['parameter']}:")
+        for row in sweep["points"]:
+            verdict = "no equilibrium" if row["max_real"] is None else (
+                f"max real part {row['max_real']:.4g} 1/s, " + ("stable" if row["max_real"] < 0 else "UNSTABLE"))
+            print(f"    {row['value']:.6g}: {verdict}")
+        bounds = ", ".join(f"{b:.6g}" for b in sweep["boundaries"]) or "none in the range"
+        print(f"  stability boundaries in {sweep['parameter']}: {bounds}")
+    for unit in microgrid.units:
+        from .ident import selection_warnings
+
+        for warning in selection_warnings(unit.system):
+            print(f"  caution ({unit.name}): {warning}")
+    return 0
+
+
 def cmd_gap(args) -> int:
     from .data import concat_datasets, read_dataset
     from .gap import GapSettings, GapWorkflow, ModelReference, PlantReference
@@ -398,6 +516,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--margin", action="store_true", help="also scan ug for stability boundaries")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=cmd_analyse)
+
+    p = sub.add_parser("microgrid", help="assemble inverter models (identified or known) with buses, lines, loads and "
+                                         "a grid source; equilibrium, modes, a parameter sweep")
+    p.add_argument("--config", required=True, metavar="FILE", help="microgrid description (YAML or JSON; README, 'Microgrid')")
+    p.add_argument("--ug", type=float, help="grid source voltage (p.u.; default: the configuration's, else 1.0)")
+    p.add_argument("--theta-g", type=float, help="grid source phase (rad; default: the configuration's, else 0)")
+    p.add_argument("--model", action="append", metavar="UNIT=PATH",
+                   help="take this unit's equations from an explicit model JSON (e.g. target=model.json from "
+                        "`pisml identify`) instead of the configuration's (repeatable)")
+    p.add_argument("--modes", type=int, default=3, help="least-damped modes to list with each unit's share (default 3)")
+    p.add_argument("--vary", metavar="PATH=VALUES", help="sweep one setting, e.g. units.aux.plant.KpV=0.5:3:11 or "
+                   "lines.3.x=0.1,0.2,0.4 (list entries by name or index): the largest real part at each value and "
+                   "the stability boundaries between them")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=cmd_microgrid)
 
     p = sub.add_parser("gap", help="find where a reference model and measurements disagree and name the missing effect")
     p.add_argument("--data", action="append", required=True, metavar="PATH", help="CSV or bag (repeatable)")

@@ -29,11 +29,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from ..equilibrium import EquilibriumNotFound, root
+from .modal import modal_summary
 
 GRID = "grid"
 #: the virtual HIL's base angular frequency (2π·60 rad/s, ``pisml_ros.plant.parameters.OMEGA_BASE``)
@@ -187,6 +189,18 @@ class Microgrid:
         vd, vq = x[o], x[o + 1]
         return np.array([math.hypot(vd, vq), math.atan2(vq, vd)])
 
+    def _local(self, x, k):
+        """Unit ``k``'s state and inputs in the frame of its bus voltage: its angle taken from
+        the bus voltage's phase, and a grid phase of 0. For a model invariant to a common rotation
+        (the plant, whose equations see only δ − θ_g) it is the same thing as the network frame; an
+        identified model may also use the angle alone (``sin(delta)``: in its records δ stayed near
+        θ_g), and holds only near the grid phase it was identified at, its test rig's reference."""
+        unit, o = self.units[k], self.unit_offset[k]
+        inputs = self._unit_inputs(x, unit)
+        local = np.array(x[o:o + unit.n_states], dtype=float)
+        local[unit.i_angle] -= inputs[1]
+        return local, np.array([inputs[0], 0.0])
+
     def _unit_current(self, x, k):
         """The current unit ``k`` injects, in the network frame, and its derivative in (angle, i_d, i_q)."""
         unit, o = self.units[k], self.unit_offset[k]
@@ -215,7 +229,8 @@ class Microgrid:
         injected = {b.name: np.zeros(2) for b in self.buses}
         for k, unit in enumerate(self.units):
             o = self.unit_offset[k]
-            out[o:o + unit.n_states] = unit.system.vector_field(x[o:o + unit.n_states], self._unit_inputs(x, unit))
+            local, inputs = self._local(x, k)
+            out[o:o + unit.n_states] = unit.system.vector_field(local, inputs)
             injected[unit.bus] += self._unit_current(x, k)[0]
         wb, wg = self.wb, self.wg
         for b in self.buses:
@@ -268,15 +283,19 @@ class Microgrid:
         rot = np.array([[0.0, wg], [-wg, 0.0]])  # −j·wg as a 2×2 map on (D, Q)
         for k, unit in enumerate(self.units):
             o, m = self.unit_offset[k], unit.n_states
-            xu, uu = x[o:o + m], self._unit_inputs(x, unit)
-            a[o:o + m, o:o + m] = unit.system.jacobian(xu, uu, wrt="x")
-            # inputs (|v|, ∠v) of the bus voltage (v_D, v_Q)
+            local, inputs = self._local(x, k)
+            block = np.asarray(unit.system.jacobian(local, inputs, wrt="x"), dtype=float)
+            a[o:o + m, o:o + m] = block
+            # the bus voltage (v_D, v_Q) -> its magnitude (the unit's ug) and its phase, which
+            # enters through the unit's angle in the bus frame (δ − θ_bus)
             ov = self.v_offset[unit.bus]
             vd, vq = x[ov], x[ov + 1]
             mag2 = max(vd * vd + vq * vq, 1e-300)
             mag = math.sqrt(mag2)
             dinputs = np.array([[vd / mag, vq / mag], [-vq / mag2, vd / mag2]])
-            a[o:o + m, ov:ov + 2] = np.asarray(unit.system.jacobian(xu, uu, wrt="u"), dtype=float) @ dinputs
+            by_input = np.column_stack([np.asarray(unit.system.jacobian(local, inputs, wrt="u"), dtype=float)[:, 0],
+                                        -block[:, unit.i_angle]])
+            a[o:o + m, ov:ov + 2] = by_input @ dinputs
             # its current into the bus
             _, slope = self._unit_current(x, k)
             cols = [o + unit.i_angle, o + unit.i_current[0], o + unit.i_current[1]]
@@ -318,38 +337,76 @@ class Microgrid:
         return x
 
     def initial_guess(self, ug: float, theta_g: float = 0.0) -> np.ndarray:
-        """A start for :meth:`equilibrium`: each unit at its own equilibrium on a bus at the grid
-        source's voltage, the network in steady state with those currents, then each unit again at
-        the voltage of its bus (a few rounds)."""
+        """Each unit at its own equilibrium on the grid source's voltage, and the network in
+        steady state with those currents: the exact operating point of a network without
+        impedance (the start of :meth:`equilibrium`'s path)."""
         u = np.array([ug, theta_g], dtype=float)
         x = np.zeros(self.n_states)
         for b in self.buses:
             x[self.v_offset[b.name]:self.v_offset[b.name] + 2] = self._source(u)
-        for _ in range(4):
-            for k, unit in enumerate(self.units):
-                o = self.unit_offset[k]
-                inputs = self._unit_inputs(x, unit)
-                try:
-                    x[o:o + unit.n_states] = unit.system.equilibrium(*inputs)
-                except Exception as exc:  # noqa: BLE001 - any model's failure to find one
-                    raise EquilibriumNotFound(f"unit {unit.name!r} has no equilibrium of its own at its bus voltage "
-                                              f"{inputs[0]:.4g} p.u., {inputs[1]:.4g} rad: {exc}") from exc
-            x = self._network_steady(x, u)
-        return x
+        for k, unit in enumerate(self.units):
+            o = self.unit_offset[k]
+            try:
+                x[o:o + unit.n_states] = unit.system.equilibrium(ug, 0.0)  # in its bus frame (see _local)
+                x[o + unit.i_angle] += theta_g
+            except Exception as exc:  # noqa: BLE001 - any model's failure to find one
+                raise EquilibriumNotFound(f"unit {unit.name!r} has no equilibrium of its own at the grid source's "
+                                          f"{ug:.4g} p.u., {theta_g:.4g} rad: {exc}") from exc
+        return self._network_steady(x, u)
 
-    def equilibrium(self, ug: float = 1.0, theta_g: float = 0.0, x0=None, tol: float = 1e-8) -> np.ndarray:
-        """The microgrid's operating point (f = 0) with the grid source at ``ug``∠``theta_g``
-        (scipy's hybrid Powell with the exact Jacobian, from :meth:`initial_guess`)."""
+    def scaled(self, level: float) -> "Microgrid":
+        """The same microgrid with every line's impedance times ``level`` and every load's
+        divided by it (``level`` → 0: every bus at the grid source's voltage, no load)."""
+        buses = [dataclasses.replace(b, load_r=b.load_r / level, load_x=b.load_x / level) if b.load_r is not None else b
+                 for b in self.buses]
+        lines = [dataclasses.replace(line, r=line.r * level, x=line.x * level) for line in self.lines]
+        return Microgrid(self.units, buses, lines, base_hz=self.wb / (2.0 * math.pi), wg=self.wg)
+
+    def equilibrium(self, ug: float = 1.0, theta_g: float = 0.0, x0=None, tol: float = 1e-8,
+                    start_level: float = 1e-3) -> np.ndarray:
+        """The microgrid's operating point (f = 0) with the grid source at ``ug``∠``theta_g``.
+
+        Followed from the network without impedance (:meth:`initial_guess`, exact there) as the
+        lines' impedances and the loads grow to their values (:meth:`scaled`, levels from
+        ``start_level`` to 1, halved where a step fails; scipy's hybrid Powell with the exact
+        Jacobian at each): the operating point connected to each unit's own, not another root
+        of the network equations (a start from the units' equilibria on a heavily loaded network
+        found one with every angle near π). With ``x0``, one solve from there.
+        """
         u = np.array([ug, theta_g], dtype=float)
-        start = self.initial_guess(ug, theta_g) if x0 is None else np.asarray(x0, dtype=float)
-        scale = np.maximum(np.abs(self.jacobian(start, u)).sum(axis=1), 1.0)
 
-        def accept(x, u_now):
-            return bool(np.all(np.abs(self.vector_field(x, u_now)) <= tol * scale))
+        def solve(grid, start):
+            scale = np.maximum(np.abs(grid.jacobian(start, u)).sum(axis=1), 1.0)
 
-        x = root(self.vector_field, self.jacobian, u, start, accept)
+            def accept(x, u_now):
+                return bool(np.all(np.isfinite(x)) and np.all(np.abs(grid.vector_field(x, u_now)) <= tol * scale))
+
+            return root(grid.vector_field, grid.jacobian, u, start, accept)
+
+        if x0 is not None:
+            x = solve(self, np.asarray(x0, dtype=float))
+            if x is None:
+                raise EquilibriumNotFound(f"microgrid: no equilibrium found from the given start at {ug} p.u., "
+                                          f"{theta_g} rad")
+            return x
+        level = float(start_level)
+        x = solve(self.scaled(level), self.scaled(level).initial_guess(ug, theta_g))
         if x is None:
-            raise EquilibriumNotFound(f"microgrid: no equilibrium found with the grid source at {ug} p.u., {theta_g} rad")
+            raise EquilibriumNotFound(f"microgrid: no equilibrium even with the lines' impedances and the loads scaled "
+                                      f"by {level:g} (grid source {ug} p.u., {theta_g} rad)")
+        ratio = 3.0
+        while level < 1.0:
+            trial = min(1.0, level * ratio)
+            found = solve(self if trial == 1.0 else self.scaled(trial), x)
+            if found is None:
+                ratio = math.sqrt(ratio)
+                if ratio < 1.0 + 1e-3:
+                    raise EquilibriumNotFound(f"microgrid: the operating point is lost with the network at {level:.4g} "
+                                              f"of its impedances and loads (grid source {ug} p.u., {theta_g} rad): "
+                                              f"no equilibrium of this microgrid on that branch")
+                continue
+            x, level = found, trial
+            ratio = min(3.0, ratio * 1.5)
         return x
 
     def eigenvalues(self, ug: float = 1.0, theta_g: float = 0.0) -> np.ndarray:
@@ -365,3 +422,188 @@ class Microgrid:
         shares = {u.name: float(row[o:o + u.n_states].sum()) / total for u, o in zip(self.units, self.unit_offset)}
         shares["network"] = float(row[self.n_unit_states:].sum()) / total
         return shares
+
+
+# -------------------------------------------------------------------- configuration and reports
+_BUS_KEYS = {"name", "capacitance", "load"}
+_LINE_KEYS = {"name", "from", "to", "r", "x"}
+_UNIT_KEYS = {"name", "bus", "model", "plant", "angle", "current"}
+_TOP_KEYS = {"base_hz", "grid", "buses", "lines", "units"}
+
+
+def _number(value, where: str, positive: bool = False, nonnegative: bool = False) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise MicrogridError(f"{where}: expected a number, got {value!r}") from None
+    if not math.isfinite(out) or (positive and not out > 0) or (nonnegative and out < 0):
+        need = "> 0" if positive else ">= 0" if nonnegative else "finite"
+        raise MicrogridError(f"{where}: must be {need}, got {value!r}")
+    return out
+
+
+def _entries(config: dict, key: str, source: str) -> list:
+    entries = config.get(key)
+    if not isinstance(entries, list) or not entries:
+        raise MicrogridError(f"{source}: '{key}' must be a non-empty list")
+    for k, entry in enumerate(entries):
+        if not isinstance(entry, dict):
+            raise MicrogridError(f"{source}: {key}[{k}] must be a mapping, got {entry!r}")
+    return entries
+
+
+def _unknown(entry: dict, allowed: set, where: str):
+    extra = sorted(set(entry) - allowed)
+    if extra:
+        raise MicrogridError(f"{where}: unknown key(s) {extra}; allowed: {sorted(allowed)}")
+
+
+def microgrid_from_config(config: dict, base_dir=".", source: str = "microgrid", loaded: dict | None = None) -> tuple:
+    """A :class:`Microgrid` and its grid source's operating point from a configuration mapping
+    (the ``microgrid:`` section of a YAML or JSON file; README, "Microgrid")::
+
+        base_hz: 60                      # optional (the virtual HIL's)
+        grid: {ug: 1.0, theta_g: 0.0}    # the grid source (optional: 1.0 p.u., 0 rad)
+        buses:  [{name: b1, capacitance: 0.02}, {name: pcc, capacitance: 0.05, load: {r: 0.9, x: 0.4358}}]
+        lines:  [{from: b1, to: pcc, r: 0.01, x: 0.05}, {from: pcc, to: grid, r: 0.02, x: 0.2}]
+        units:  [{name: target, model: target.json, bus: b1},     # an identified explicit model
+                 {name: aux, plant: {KpV: 2.0, KiV: 4.0}, bus: b1}]  # the virtual HIL's inverter, these parameters
+
+    ``model`` paths are relative to ``base_dir``; ``loaded``, a dict, keeps the models read
+    (path -> model) for the next call (a parameter sweep rebuilds the microgrid at every value).
+    Returns ``(microgrid, (ug, theta_g))``.
+    """
+    from ..model import ExplicitModel
+
+    if not isinstance(config, dict):
+        raise MicrogridError(f"{source}: expected a mapping, got {type(config).__name__}")
+    _unknown(config, _TOP_KEYS, source)
+    grid = config.get("grid") or {}
+    if not isinstance(grid, dict):
+        raise MicrogridError(f"{source}: 'grid' must be a mapping with ug and theta_g, got {grid!r}")
+    _unknown(grid, {"ug", "theta_g"}, f"{source}: grid")
+    inputs = (_number(grid.get("ug", 1.0), f"{source}: grid.ug", positive=True),
+              _number(grid.get("theta_g", 0.0), f"{source}: grid.theta_g"))
+    buses = []
+    for k, entry in enumerate(_entries(config, "buses", source)):
+        where = f"{source}: buses[{k}]"
+        _unknown(entry, _BUS_KEYS, where)
+        load = entry.get("load")
+        if load is not None and not isinstance(load, dict):
+            raise MicrogridError(f"{where}.load: a mapping with r and x (p.u.), got {load!r}")
+        if load is not None:
+            _unknown(load, {"r", "x"}, f"{where}.load")
+        buses.append(Bus(str(entry.get("name", f"bus{k}")),
+                         _number(entry.get("capacitance", 0.05), f"{where}.capacitance", positive=True),
+                         None if load is None else _number(load.get("r", 0.0), f"{where}.load.r", nonnegative=True),
+                         0.0 if load is None else _number(load.get("x", 0.0), f"{where}.load.x", nonnegative=True)))
+    lines = []
+    for k, entry in enumerate(_entries(config, "lines", source)):
+        where = f"{source}: lines[{k}]"
+        _unknown(entry, _LINE_KEYS, where)
+        if "from" not in entry or "to" not in entry:
+            raise MicrogridError(f"{where}: needs 'from' and 'to' (bus names, or {GRID!r} for 'to')")
+        lines.append(Line(str(entry["from"]), str(entry["to"]), _number(entry.get("r", 0.01), f"{where}.r", nonnegative=True),
+                          _number(entry.get("x", 0.05), f"{where}.x", positive=True)))
+    units = []
+    for k, entry in enumerate(_entries(config, "units", source)):
+        where = f"{source}: units[{k}]"
+        _unknown(entry, _UNIT_KEYS, where)
+        if ("model" in entry) == ("plant" in entry):
+            raise MicrogridError(f"{where}: give exactly one of 'model' (an explicit model JSON) or 'plant' (the virtual "
+                                 f"HIL's inverter with these parameters)")
+        if "bus" not in entry:
+            raise MicrogridError(f"{where}: needs 'bus'")
+        if "model" in entry:
+            path = str(Path(base_dir) / str(entry["model"]))
+            system = loaded.get(path) if loaded is not None else None
+            if system is None:
+                system = ExplicitModel.load(path)
+                if loaded is not None:
+                    loaded[path] = system
+        else:
+            from ..plant import InverterPlant, PlantParameters
+
+            params = entry["plant"] or {}
+            if not isinstance(params, dict):
+                raise MicrogridError(f"{where}.plant: a mapping of plant parameters, got {params!r}")
+            try:
+                system = InverterPlant(PlantParameters().replace(**params))
+            except (TypeError, ValueError) as err:
+                raise MicrogridError(f"{where}.plant: {err}") from None
+        current = entry.get("current", ("ig_d", "ig_q"))
+        if not isinstance(current, (list, tuple)) or len(current) != 2:
+            raise MicrogridError(f"{where}.current: two state names (d, q), got {current!r}")
+        units.append(Unit(str(entry.get("name", f"unit{k}")), system, str(entry["bus"]),
+                          angle=str(entry.get("angle", "delta")), current=tuple(map(str, current))))
+    base_hz = _number(config.get("base_hz", DEFAULT_BASE_HZ), f"{source}: base_hz", positive=True)
+    return Microgrid(units, buses, lines, base_hz=base_hz), inputs
+
+
+def with_setting(config: dict, path: str, value) -> dict:
+    """A copy of ``config`` with the entry at the dotted ``path`` set to ``value``: list entries by
+    index or by their ``name`` (``units.aux.plant.KpV``, ``lines.3.x``, ``grid.ug``)."""
+    import copy
+
+    out = copy.deepcopy(config)
+    keys = path.split(".")
+    node = out
+    for depth, key in enumerate(keys):
+        last = depth == len(keys) - 1
+        if isinstance(node, list):
+            named = [k for k, entry in enumerate(node) if isinstance(entry, dict) and str(entry.get("name")) == key]
+            if named:
+                index = named[0]
+            elif key.lstrip("-").isdigit() and -len(node) <= int(key) < len(node):
+                index = int(key)
+            else:
+                raise MicrogridError(f"--vary {path}: no entry {key!r} in {'.'.join(keys[:depth]) or 'the configuration'}")
+            if last:
+                node[index] = value
+            node = node[index]
+        elif isinstance(node, dict):
+            if last:
+                node[key] = value
+            else:
+                node = node.setdefault(key, {})
+        else:
+            raise MicrogridError(f"--vary {path}: {'.'.join(keys[:depth])} is a value, not a mapping or list")
+    return out
+
+
+def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0, modes: int = 3) -> dict:
+    """The microgrid's operating point and modes
+    (:func:`~pisml_ros.analysis.operating_point.operating_point_report`), plus per unit the bus
+    voltage it sees and whether an identified unit was fitted on such voltages, and the ``modes``
+    least-damped modes with each unit's share in them (JSON-ready)."""
+    from .operating_point import coverage_note, data_coverage, operating_point_report
+
+    report = operating_point_report(microgrid, ug, theta_g)
+    x = np.array([report["operating_point"]["state"][name] for name in microgrid.state_names])
+    units = []
+    for k, unit in enumerate(microgrid.units):
+        seen = microgrid._unit_inputs(x, unit)
+        current, _ = microgrid._unit_current(x, k)
+        o = microgrid.v_offset[unit.bus]
+        v = x[o:o + 2]
+        entry = {"name": unit.name, "bus": unit.bus, "ug": float(seen[0]), "theta_g": float(seen[1]),
+                 # the power the unit delivers into its bus (network frame, p.u.)
+                 "p": float(v @ current), "q": float(v[1] * current[0] - v[0] * current[1]),
+                 "kind": type(unit.system).__name__}
+        coverage = data_coverage(unit.system, seen)
+        if coverage is not None:
+            entry["data_coverage"] = coverage
+            note = coverage_note(coverage)
+            if note:
+                entry["note"] = note
+        units.append(entry)
+    report["units"] = units
+    a = microgrid.jacobian(x, [ug, theta_g])
+    summary = modal_summary(a, microgrid.state_names)
+    report["weakest_modes"] = [
+        {"eigenvalue": [float(summary.eigenvalues[k].real), float(summary.eigenvalues[k].imag)],
+         "damping": float(summary.damping[k]), "frequency_hz": float(summary.frequencies_hz[k]),
+         "unit_shares": microgrid.unit_shares(summary.participation[k]),
+         "dominant_states": summary.dominant_states(k)}
+        for k in range(min(modes, len(summary.eigenvalues)))]
+    return report

@@ -1,0 +1,154 @@
+"""Multi-inverter assembly (pisml_ros.analysis.microgrid) and `pisml microgrid`."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from pisml_ros.analysis.microgrid import (Bus, Line, Microgrid, MicrogridError, Unit, microgrid_from_config,
+                                          microgrid_report, with_setting)
+from pisml_ros.ident.library import extended_library, monomial_basis, physics_library
+from pisml_ros.ident.roles import SignalRoles
+from pisml_ros.model import ExplicitModel
+from pisml_ros.plant import InverterPlant, PlantParameters
+from pisml_ros.signals import INPUT_NAMES, STATE_NAMES
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "config" / "microgrid.yaml"
+
+
+def three_bus(target, aux_gain=2.0):
+    aux1 = InverterPlant(PlantParameters(mp=0.06, KpV=aux_gain, KiV=4.0, KpC=0.3))
+    aux2 = InverterPlant(PlantParameters(KpV=1.4, KiV=2.0, KpC=0.4))
+    units = [Unit("target", target, "b1"), Unit("aux1", aux1, "b2"), Unit("aux2", aux2, "b3")]
+    buses = [Bus("b1", 0.02), Bus("b2", 0.02, load_r=4.0), Bus("b3", 0.02), Bus("pcc", 0.05, load_r=0.9, load_x=0.4358)]
+    lines = [Line("b1", "pcc", 0.01, 0.05), Line("b2", "pcc", 0.01, 0.05), Line("b3", "b2", 0.01, 0.05),
+             Line("pcc", "grid", 0.02, 0.2)]
+    return Microgrid(units, buses, lines)
+
+
+def plant_as_explicit_model(plant):
+    """The plant's vector field over the engine's monomial basis, fitted exactly by least squares
+    (the plant lies in the basis' span) around its equilibria."""
+    roles = SignalRoles()
+    basis, _ = monomial_basis(physics_library(roles, STATE_NAMES) + extended_library(roles, STATE_NAMES),
+                              STATE_NAMES + INPUT_NAMES)
+    rng = np.random.default_rng(0)
+    points = []
+    for ug in (0.8, 0.9, 1.0, 1.1, 1.2):
+        x0 = plant.equilibrium(ug)
+        for _ in range(40):
+            points.append((x0 + 0.05 * rng.standard_normal(x0.size) * (1 + np.abs(x0)),
+                           [ug * (1 + 0.05 * rng.standard_normal()), 0.1 * rng.standard_normal()]))
+    x = np.array([p for p, _ in points])
+    u = np.array([q for _, q in points])
+    empty = ExplicitModel(STATE_NAMES, INPUT_NAMES, basis, np.zeros((len(basis), len(STATE_NAMES))))
+    coef = np.linalg.lstsq(empty.features(x, u), plant.vector_field(x, u), rcond=None)[0]
+    coef[np.abs(coef) < 1e-8] = 0.0
+    refs = [{"inputs": [1.0, 0.0], "state": plant.equilibrium(1.0).tolist()}]
+    return ExplicitModel(STATE_NAMES, INPUT_NAMES, basis, coef, metadata={"reference_points": refs})
+
+
+def test_jacobian_is_exact():
+    grid = three_bus(InverterPlant())
+    u = np.array([1.0, 0.05])
+    x = grid.equilibrium(*u)
+    assert np.abs(grid.vector_field(x, u)).max() < 1e-6
+    rng = np.random.default_rng(1)
+    x = x + 1e-2 * rng.standard_normal(x.size)  # off the equilibrium too
+    step = 1e-6
+    numeric = np.stack([(grid.vector_field(x + step * e, u) - grid.vector_field(x - step * e, u)) / (2 * step)
+                        for e in np.eye(grid.n_states)], axis=1)
+    exact = grid.jacobian(x, u)
+    assert np.abs(exact - numeric).max() < 1e-7 * np.abs(exact).max()
+    numeric_u = np.stack([(grid.vector_field(x, u + step * e) - grid.vector_field(x, u - step * e)) / (2 * step)
+                          for e in np.eye(2)], axis=1)
+    assert np.allclose(grid.jacobian(x, u, wrt="u"), numeric_u, rtol=1e-6, atol=1e-4)
+
+
+def test_one_unit_on_a_stiff_bus_has_the_plant_modes():
+    plant = InverterPlant()
+    grid = Microgrid([Unit("inv", plant, "pcc")], [Bus("pcc", capacitance=1e-4)], [Line("pcc", "grid", r=0.0, x=1e-4)])
+    eigs = grid.eigenvalues(1.0, 0.0)
+    for reference in plant.eigenvalues(1.0, 0.0):  # the plant's own, on its ideal grid
+        assert np.min(np.abs(eigs - reference)) < 1e-3 * max(1.0, abs(reference))
+    # the network adds its own (stiff) modes only
+    assert len(eigs) == plant.n_states + 4
+
+
+def test_identified_equations_stand_in_for_the_plant():
+    """The target as explicit model equations (here: the plant's exact ones, over the engine's
+    monomials) gives the same microgrid: operating point, modes, stability boundary."""
+    plant = InverterPlant()
+    model = plant_as_explicit_model(plant)
+    truth, assembled = three_bus(plant), three_bus(model)
+    x_truth, x_model = truth.equilibrium(1.0, 0.0), assembled.equilibrium(1.0, 0.0)
+    assert np.allclose(x_truth, x_model, atol=1e-6)
+    a, b = np.sort_complex(truth.eigenvalues(1.0, 0.0)), np.sort_complex(assembled.eigenvalues(1.0, 0.0))
+    assert np.abs(a - b).max() < 1e-5 * np.abs(a).max()
+    report = microgrid_report(assembled, 1.0, 0.0, modes=2)
+    assert report["stable"] and [u["name"] for u in report["units"]] == ["target", "aux1", "aux2"]
+    for mode in report["weakest_modes"]:
+        assert sum(mode["unit_shares"].values()) == pytest.approx(1.0)
+    # grid-connected droop inverters deliver their set point
+    assert all(u["p"] == pytest.approx(0.5, abs=0.02) for u in report["units"])
+
+
+def test_descriptions_that_cannot_be_assembled_say_what_is_wrong():
+    plant = InverterPlant()
+    with pytest.raises(MicrogridError, match="islanded"):
+        Microgrid([Unit("a", plant, "b")], [Bus("b")], [])
+    with pytest.raises(MicrogridError, match="bus 'nowhere'"):
+        Microgrid([Unit("a", plant, "nowhere")], [Bus("b")], [Line("b", "grid")])
+    with pytest.raises(MicrogridError, match="capacitance"):
+        Microgrid([Unit("a", plant, "b")], [Bus("b", capacitance=0.0)], [Line("b", "grid")])
+    with pytest.raises(MicrogridError, match=r"state\(s\) \['i_out'\]"):
+        Unit("a", plant, "b", current=("ig_d", "i_out"))
+    config = yaml.safe_load(CONFIG.read_text())["microgrid"]
+    broken = with_setting(config, "lines.1.x", -0.1)
+    with pytest.raises(MicrogridError, match=r"lines\[1\]\.x: must be > 0"):
+        microgrid_from_config(broken, CONFIG.parent, source="cfg")
+    with pytest.raises(MicrogridError, match=r"units\[1\]: unknown key\(s\) \['gain'\]"):
+        microgrid_from_config(with_setting(config, "units.aux1.gain", 2.0), CONFIG.parent, source="cfg")
+    with pytest.raises(MicrogridError, match=r"units\[1\]\.plant: unknown parameter"):
+        microgrid_from_config(with_setting(config, "units.aux1.plant.Kp", 2.0), CONFIG.parent, source="cfg")
+    with pytest.raises(MicrogridError, match="no entry 'nine'"):
+        with_setting(config, "lines.nine.x", 1.0)
+
+
+def test_setting_by_name_or_index():
+    config = yaml.safe_load(CONFIG.read_text())["microgrid"]
+    changed = with_setting(with_setting(config, "units.aux2.plant.KpV", 3.0), "lines.3.x", 0.4)
+    assert changed["units"][2]["plant"]["KpV"] == 3.0 and changed["lines"][3]["x"] == 0.4
+    assert config["units"][2]["plant"]["KpV"] == 1.4  # a copy
+
+
+def pisml(*args, check=True):
+    proc = subprocess.run([sys.executable, "-m", "pisml_ros.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=300)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"pisml {' '.join(map(str, args))} failed ({proc.returncode}): {proc.stderr}")
+    return proc
+
+
+def test_cli_microgrid_with_an_identified_unit_and_a_sweep(tmp_path):
+    model = plant_as_explicit_model(InverterPlant())
+    path = model.save(tmp_path / "target.json")
+    out = json.loads(pisml("microgrid", "--config", CONFIG, "--model", f"target={path}", "--json",
+                           "--vary", "grid.ug=0.15:0.35:3").stdout)
+    assert out["stable"] and out["units"][0]["kind"] == "ExplicitModel"
+    sweep = out["sweep"]
+    assert sweep["parameter"] == "grid.ug" and len(sweep["points"]) == 3
+    # the same boundary as with the plant itself as the target
+    plain = json.loads(pisml("microgrid", "--config", CONFIG, "--json", "--vary", "grid.ug=0.15:0.35:3").stdout)
+    assert len(sweep["boundaries"]) == len(plain["sweep"]["boundaries"]) == 1
+    assert sweep["boundaries"][0] == pytest.approx(plain["sweep"]["boundaries"][0], abs=1e-3)
+    text = pisml("microgrid", "--config", CONFIG).stdout
+    assert "STABLE" in text and "unit aux1 (InverterPlant) at bus b2" in text
+    bad = pisml("microgrid", "--config", CONFIG, "--model", f"nobody={path}", check=False)
+    assert bad.returncode == 2 and "UNIT one of the configuration's units ['target', 'aux1', 'aux2']" in bad.stderr
+    missing = pisml("microgrid", "--config", tmp_path / "none.yaml", check=False)
+    assert missing.returncode == 2 and "none.yaml" in missing.stderr
