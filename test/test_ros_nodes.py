@@ -48,6 +48,34 @@ def test_analyser_publishes_latched_plant_stability(probe, tmp_path):
         assert stop_node(proc) == 0
 
 
+def test_analyser_reports_the_model_inside_a_microgrid(probe, tmp_path):
+    import json
+    from pathlib import Path
+
+    from std_msgs.msg import String
+
+    config = Path(__file__).resolve().parents[1] / "config" / "microgrid.yaml"
+    proc = start_node("pisml-analyser", "-p", "analyse_plant:=true", "-p", f"microgrid_config:={config}",
+                      "-p", "sweep_points:=0", log_dir=tmp_path)
+    try:
+        got = []
+        sub = probe.create_subscription(String, "/pisml/microgrid", got.append, latched_qos())
+        assert spin_until(probe, lambda: got, 30.0), proc.log_path.read_text()
+        report = json.loads(got[0].data)
+        assert report["model_id"] == "plant" and report["unit"] == "target" and report["stable"] is True
+        assert [u["name"] for u in report["units"]] == ["target", "aux1", "aux2"]
+        assert report["max_real"] == pytest.approx(-1.532, abs=1e-3)  # as `pisml microgrid` on the same file
+        assert report["weakest_modes"][0]["unit_shares"]["target"] > 0.9
+        probe.destroy_subscription(sub)
+    finally:
+        assert stop_node(proc) == 0
+    (tmp_path / "bad").mkdir()
+    bad = start_node("pisml-analyser", "-p", f"microgrid_config:={config}", "-p", "microgrid_unit:=nobody",
+                     log_dir=tmp_path / "bad")
+    assert bad.wait(timeout=60) != 0  # refused at start-up, with the entry named
+    assert "microgrid_unit: 'nobody' is not a unit" in bad.log_path.read_text()
+
+
 def test_looped_playback_keeps_real_time_across_passes(probe, tmp_path):
     # a pass of 10 ms: each restart of the loop must continue the time base, or a late timer tick
     # at every wrap (~2 ms) would cost a fifth of the samples

@@ -15,6 +15,12 @@ transient-local) and written to ``output_dir`` when set. Setting a ``sweep_*``
 or ``ug_points`` parameter at run time re-runs the analysis of the latest model.
 
 ``analyse_plant`` reports on the virtual HIL plant at start-up (model_id "plant").
+
+Microgrid: with ``microgrid_config`` (a ``pisml microgrid`` configuration file), every analysed
+model also takes the place of unit ``microgrid_unit`` of that microgrid, and the microgrid's
+report (operating point, each unit's voltage and power, the least-damped modes with each unit's
+share) is published as JSON on /pisml/microgrid (std_msgs/String, transient-local) with a
+diagnostic status (ERROR where the microgrid is unstable or has no operating point).
 """
 from __future__ import annotations
 
@@ -39,6 +45,7 @@ from ..fileio import atomic_write_text  # noqa: E402
 from .conversions import failed_stability_message, model_from_message, stability_message  # noqa: E402
 
 ROOT_LOCUS_TOPIC = "/pisml/root_locus"
+MICROGRID_TOPIC = "/pisml/microgrid"
 SWEEP_PARAMETERS = ("ug_points", "sweep_ug_min", "sweep_ug_max", "sweep_points", "theta_g")
 
 
@@ -128,6 +135,11 @@ class AnalyserNode(Node):
                                   "(empty = no files)")
         self.analyse_plant = declare(self, "analyse_plant", False, "report on the virtual HIL plant at start-up")
         params_file = declare(self, "params_file", "", "plant parameter file for analyse_plant (empty = nameplate)")
+        self.microgrid = self._load_microgrid(
+            declare(self, "microgrid_config", "", "a `pisml microgrid` configuration: each model also replaces one "
+                    "of its units and the microgrid's report goes to /pisml/microgrid (empty = off)"),
+            declare(self, "microgrid_unit", "target", "the unit of microgrid_config the analysed models replace"))
+        self.microgrid_pub = self.create_publisher(String, MICROGRID_TOPIC, latched_qos())
         # every operating point of a model stays latched for late subscribers
         self.stability = self.create_publisher(StabilityReport, STABILITY_TOPIC, latched_qos(
             depth=max(len(self.ug_points), 1)))
@@ -153,6 +165,27 @@ class AnalyserNode(Node):
             self._submit(plant, "plant")
 
     # ------------------------------------------------------------------ parameters
+    @staticmethod
+    def _load_microgrid(path: str, unit: str):
+        """(configuration, unit name, directory) of the microgrid, or None; a bad file stops the
+        node at start-up with the file and entry named (microgrid_from_config's checks)."""
+        if not path:
+            return None
+        import yaml
+
+        from ..analysis.microgrid import microgrid_from_config
+
+        try:
+            config = yaml.safe_load(Path(path).read_text())
+        except (OSError, yaml.YAMLError) as err:
+            raise ValueError(f"parameter microgrid_config: {path}: {getattr(err, 'strerror', None) or err}") from None
+        config = config.get("microgrid", config) if isinstance(config, dict) else config
+        microgrid_from_config(config, Path(path).parent, source=path)  # checked now, not at the first model
+        names = [str(entry.get("name")) for entry in config["units"]]
+        if unit not in names:
+            raise ValueError(f"parameter microgrid_unit: {unit!r} is not a unit of {path} ({names})")
+        return config, unit, Path(path).parent
+
     @staticmethod
     def _check_points(points):
         if not points or any(not (0.0 < ug < 3.0) for ug in points):
@@ -282,6 +315,8 @@ class AnalyserNode(Node):
             self.locus.publish(String(data=json.dumps(locus)))
             bounds = [round(b, 4) for b in locus["boundaries"]]
             self.get_logger().info(f"{model_id}: stability boundaries in ug {bounds}")
+        if self.microgrid is not None:
+            statuses.append(self._report_microgrid(system, model_id))
         if self.output_dir:
             out = Path(self.output_dir)
             atomic_write_text(out / "stability.json", json.dumps(
@@ -290,6 +325,33 @@ class AnalyserNode(Node):
             if locus is not None:
                 atomic_write_text(out / "root_locus.json", json.dumps(locus, default=_json_float) + "\n")
         self.statuses = statuses
+
+    def _report_microgrid(self, system, model_id: str):
+        """The microgrid of ``microgrid_config`` with ``system`` as its unit ``microgrid_unit``:
+        its report on /pisml/microgrid, and a diagnostic status."""
+        from ..analysis.microgrid import microgrid_from_config, microgrid_report, with_setting
+
+        config, unit, base = self.microgrid
+        name = "pisml: microgrid"
+        index = [str(entry.get("name")) for entry in config["units"]].index(unit)
+        entry = {k: v for k, v in config["units"][index].items() if k not in ("plant", "model")}
+        config = with_setting(config, f"units.{index}", dict(entry, model="analysed-model.json"))
+        try:
+            grid, inputs = microgrid_from_config(config, base, loaded={str(base / "analysed-model.json"): system})
+            report = microgrid_report(grid, *inputs)
+        except Exception as err:  # no operating point: reported, the node goes on
+            text = f"{model_id} as microgrid unit {unit!r}: {err}"
+            self.microgrid_pub.publish(String(data=json.dumps({"model_id": model_id, "unit": unit, "error": str(err)})))
+            self.get_logger().error(text)
+            return status(name, DiagnosticStatus.ERROR, text)
+        report.update(model_id=model_id, unit=unit)
+        self.microgrid_pub.publish(String(data=json.dumps(report, default=_json_float)))
+        verdict = "stable" if report["stable"] else "unstable"
+        self.get_logger().info(f"{model_id} as microgrid unit {unit!r}: {verdict}, max real part "
+                               f"{report['max_real']:.4g} 1/s")
+        return status(name, DiagnosticStatus.OK if report["stable"] else DiagnosticStatus.ERROR,
+                      f"{model_id} as unit {unit!r}: microgrid {verdict}",
+                      {"max_real_part": f"{report['max_real']:.6g}", "model_id": model_id})
 
     def _publish_diagnostics(self):
         level = DiagnosticStatus.ERROR if self.failing else DiagnosticStatus.OK
