@@ -10,7 +10,9 @@ and method (PISML and the Mod-SINDy baseline) it prints and writes:
 - the microgrid's largest real part and the Wasserstein distance of its spectrum to the truth's,
   with the grid source at 0.8, 1.0 and 1.2 p.u.;
 - the stability boundary in the droop gain mp of auxiliary inverter 1 (the truth: 0.1326), the
-  paper's "tuning the known units to accommodate the black box".
+  paper's "tuning the known units to accommodate the black box";
+- a load step (the load bus's resistance 0.9 -> 0.6 p.u.): each unit's injected current against
+  the true microgrid's, the paper's large-signal check of the 3-bus system.
 
     .venv/bin/python bench/microgrid_bench.py [--seeds 0,1,2] [--noise 40] [--clean] \
         [--methods pisml,mod-sindy] [--out bench/microgrid_results.json] [--markdown bench/MICROGRID_RESULTS.md]
@@ -33,13 +35,14 @@ CONFIG = BENCH.parent / "config" / "microgrid.yaml"
 GRID_VOLTAGES = (0.8, 1.0, 1.2)
 VARY = "units.aux1.plant.mp"
 VARY_GRID = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3)
+STEP = ("buses.pcc.load.r", 0.6, 0.02, 0.06)  # the load bus's resistance 0.9 -> 0.6 p.u. at 20 ms, 60 ms in all
 
 
 def assess(config: dict, target, reference: dict | None = None) -> dict:
     """The microgrid around ``target`` (a system, or None for the plant of the configuration)."""
     from pisml_ros.analysis.margins import stability_boundaries
     from pisml_ros.analysis.metrics import spectrum_wasserstein
-    from pisml_ros.analysis.microgrid import microgrid_from_config, microgrid_report, with_setting
+    from pisml_ros.analysis.microgrid import microgrid_from_config, microgrid_report, simulate_stages, with_setting
 
     loaded = {}
     if target is not None:  # the target's entry names the model in memory (microgrid_from_config's cache)
@@ -72,6 +75,21 @@ def assess(config: dict, target, reference: dict | None = None) -> dict:
         return float(np.max(np.linalg.eigvals(grid.jacobian(x, [1.0, 0.0])).real))
 
     row["boundaries"] = stability_boundaries(max_real, VARY_GRID, xtol=1e-4)
+    # the paper's large-signal check: a load step, each unit's injected current against the truth's
+    path, value, at, end = STEP
+    try:
+        before, after = build(config), build(with_setting(config, path, value))
+        t, x = simulate_stages([(before, at), (after, end - at)], before.equilibrium(1.0, 0.0), [1.0, 0.0])
+        currents = before.injected_currents(x)  # (samples, units, 2)
+        row["transient"] = {"t": t.tolist(), "currents": currents.tolist()}
+        if reference is not None and reference.get("transient"):
+            truth = np.array(reference["transient"]["currents"])
+            if truth.shape == currents.shape:
+                row["transient_error"] = {
+                    unit.name: float(100 * np.linalg.norm(currents[:, k] - truth[:, k]) / np.linalg.norm(truth[:, k]))
+                    for k, unit in enumerate(before.units)}
+    except Exception as err:  # no operating point, or a run that blew up: recorded
+        row["transient_error_text"] = f"{type(err).__name__}: {err}"
     return row
 
 
@@ -90,8 +108,13 @@ def write_markdown(results: dict, path: Path) -> None:
              "the target delivers with the grid source at 1.0 p.u.; max Re: the microgrid's largest real part "
              "(1/s); W: Wasserstein distance of the microgrid's spectrum to the truth's; boundary: the droop gain "
              f"mp of auxiliary inverter 1 where the microgrid turns unstable (`--vary {VARY}`).", "",
-             "| target | P | Q | max Re at 0.8 / 1.0 / 1.2 | W at 0.8 / 1.0 / 1.2 | boundary in aux1 mp |",
-             "|---|---|---|---|---|---|"]
+             f"Load step: the load bus's resistance {STEP[0].split('.')[-1]} from 0.9 to {STEP[1]} p.u. at "
+             f"{STEP[2] * 1e3:g} ms, {STEP[3] * 1e3:g} ms in all, from each microgrid's own operating point; the "
+             "relative L2 error (%) of each unit's injected current (network frame) against the true "
+             "microgrid's, target / aux1 / aux2 (the paper's figures of the 3-bus transient).", "",
+             "| target | P | Q | max Re at 0.8 / 1.0 / 1.2 | W at 0.8 / 1.0 / 1.2 | boundary in aux1 mp | "
+             "load step, current error % |",
+             "|---|---|---|---|---|---|---|"]
 
     def row_text(name, row):
         at = row["grid"]
@@ -101,13 +124,51 @@ def write_markdown(results: dict, path: Path) -> None:
         ws = " / ".join(cell(at[str(g)].get("wasserstein")) if "error" not in at[str(g)] else "—"
                         for g in GRID_VOLTAGES)
         bounds = ", ".join(f"{b:.4g}" for b in row["boundaries"]) or "none"
-        return f"| {name} | {cell(one.get('p'), 4)} | {cell(one.get('q'), 4)} | {res} | {ws} | {bounds} |"
+        errors = row.get("transient_error")
+        step = " / ".join(cell(v) for v in errors.values()) if errors else (
+            "failed" if "transient_error_text" in row else "—")
+        return (f"| {name} | {cell(one.get('p'), 4)} | {cell(one.get('q'), 4)} | {res} | {ws} | {bounds} | "
+                f"{step} |")
 
     lines.append(row_text("true plant", truth))
     for row in results["rows"]:
         name = f"{row['method']}, recording {row['seed']}, {row['data']} ({row['coefficients']} coefficients)"
         lines.append(row_text(name, row))
     path.write_text("\n".join(lines) + "\n")
+
+
+def figure(truth: dict, rows: list, path: Path) -> None:
+    """Each unit's injected current (D axis) through the load step: the true microgrid, and the
+    first recording's models of each method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not truth.get("transient"):
+        return
+    t = np.array(truth["transient"]["t"]) * 1e3
+    currents = np.array(truth["transient"]["currents"])
+    names = ["target", "aux1", "aux2"]
+    fig, axes = plt.subplots(1, currents.shape[1], figsize=(12, 3.4), sharey=True)
+    shown = {}
+    for row in rows:  # one model per method and data: the first recording's
+        shown.setdefault((row["method"], row["data"]), row)
+    for k, ax in enumerate(np.atleast_1d(axes)):
+        ax.plot(t, currents[:, k, 0], "k-", lw=2.2, label="true plant")
+        for (method, data), row in shown.items():
+            if row.get("transient"):
+                model = np.array(row["transient"]["currents"])
+                ax.plot(np.array(row["transient"]["t"]) * 1e3, model[:, k, 0], "--", lw=1.2,
+                        label=f"{method}, {data}, recording {row['seed']}")
+        ax.set_title(f"{names[k] if k < len(names) else k}: injected current, D axis")
+        ax.set_xlabel("t (ms)")
+    np.atleast_1d(axes)[0].set_ylabel("p.u.")
+    np.atleast_1d(axes)[0].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main(argv=None) -> int:
@@ -146,8 +207,12 @@ def main(argv=None) -> int:
             one = row["grid"]["1.0"]
             print(f"{method} {row['data']} recording {seed}: P {cell(one.get('p'), 4)} Q {cell(one.get('q'), 4)} "
                   f"max Re {cell(one.get('max_real'), 4)} W {cell(one.get('wasserstein'))} "
-                  f"boundary {row['boundaries']} ({row['fit_s']} s fit){' ' + one['error'] if 'error' in one else ''}",
+                  f"boundary {row['boundaries']} load step {row.get('transient_error', row.get('transient_error_text'))} "
+                  f"({row['fit_s']} s fit){' ' + one['error'] if 'error' in one else ''}",
                   flush=True)
+    figure(truth, rows, BENCH / "figures" / "microgrid_load_step.png")
+    for row in [truth, *rows]:  # the waveforms are in the figure; the results file keeps the errors
+        row.pop("transient", None)
     results = {"args": " ".join(argv if argv is not None else sys.argv[1:]), "machine": machine(),
                "date": time.strftime("%Y-%m-%d"), "seconds": time.monotonic() - started,
                "config": str(CONFIG.relative_to(BENCH.parent)), "vary": VARY, "truth": truth, "rows": rows}

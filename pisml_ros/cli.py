@@ -291,6 +291,49 @@ def _vary_values(text: str) -> tuple[str, list[float]]:
     return path, values
 
 
+def _microgrid_transient(args, config, build, microgrid, inputs) -> dict:
+    """``pisml microgrid --step/--duration/--out``: the time response from the operating point
+    through the steps (each a network with one setting changed from then on)."""
+    import numpy as np
+
+    from .analysis.microgrid import simulate_stages, with_setting
+    from .fileio import atomic_write_text
+
+    steps = []
+    for item in args.step or []:
+        setting, sep, when = item.rpartition("@")
+        path, eq, value = setting.partition("=")
+        try:
+            steps.append((float(when), path, float(value)))
+        except ValueError:
+            raise UserError(f"--step {item!r}: expected PATH=VALUE@SECONDS, e.g. buses.pcc.load.r=0.6@0.02") from None
+        if not sep or not eq or not path or not (math.isfinite(steps[-1][0]) and steps[-1][0] > 0):
+            raise UserError(f"--step {item!r}: expected PATH=VALUE@SECONDS with SECONDS > 0")
+    steps.sort()
+    duration = args.duration if args.duration is not None else max([0.06] + [t + 0.04 for t, _, _ in steps])
+    if not (math.isfinite(duration) and duration > 0) or any(t >= duration for t, _, _ in steps):
+        raise UserError(f"--duration {duration:g}: must be > 0 s and after every --step")
+    stages, cfg, start = [], config, 0.0
+    grid = microgrid
+    for when, path, value in steps:
+        stages.append((grid, when - start))
+        cfg = with_setting(cfg, path, value)
+        grid, start = build(cfg)[0], when
+    stages.append((grid, duration - start))
+    t, x = simulate_stages(stages, microgrid.equilibrium(*inputs), inputs)
+    currents = microgrid.injected_currents(x)
+    if args.out:
+        names = ["t"] + [f"{u.name}.i_{ax}" for u in microgrid.units for ax in "DQ"] + list(microgrid.state_names)
+        table = np.column_stack([t, currents.reshape(len(t), -1), x])
+        lines = [",".join(names)] + [",".join(f"{v:.10g}" for v in row) for row in table]
+        atomic_write_text(Path(args.out), "\n".join(lines) + "\n")
+    magnitude = np.linalg.norm(currents, axis=-1)
+    return {"duration": duration, "steps": [{"t": t_, "path": p_, "value": v_} for t_, p_, v_ in steps],
+            "out": args.out or "", "samples": int(len(t)),
+            "current_range": {u.name: [float(magnitude[:, k].min()), float(magnitude[:, k].max())]
+                              for k, u in enumerate(microgrid.units)}}
+
+
 def cmd_microgrid(args) -> int:
     import numpy as np
     import yaml
@@ -351,6 +394,8 @@ def cmd_microgrid(args) -> int:
             ordered = sorted(values)
             report["sweep"] = {"parameter": vary_path, "points": rows,
                                "boundaries": stability_boundaries(max_real, ordered)}
+        if args.step or args.out:
+            report["simulation"] = _microgrid_transient(args, config, build, microgrid, inputs)
     except (MicrogridError, ModelFormatError, EquilibriumError, EquilibriumNotFound) as err:
         raise UserError(str(err)) from None
     if args.json:
@@ -379,6 +424,12 @@ def cmd_microgrid(args) -> int:
             print(f"    {row['value']:.6g}: {verdict}")
         bounds = ", ".join(f"{b:.6g}" for b in sweep["boundaries"]) or "none in the range"
         print(f"  stability boundaries in {sweep['parameter']}: {bounds}")
+    if "simulation" in report:
+        sim = report["simulation"]
+        steps = "; ".join(f"{step['path']} = {step['value']:g} at {step['t']:g} s" for step in sim["steps"]) or "none"
+        print(f"  simulated {sim['duration']:g} s (steps: {steps}) -> {sim['out'] or 'not written (--out)'}")
+        for name, (low, high) in sim["current_range"].items():
+            print(f"    unit {name}: injected current magnitude {low:.4f} .. {high:.4f} p.u.")
     for unit in microgrid.units:
         from .ident import selection_warnings
 
@@ -529,6 +580,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vary", metavar="PATH=VALUES", help="sweep one setting, e.g. units.aux.plant.KpV=0.5:3:11 or "
                    "lines.3.x=0.1,0.2,0.4 (list entries by name or index): the largest real part at each value and "
                    "the stability boundaries between them")
+    p.add_argument("--step", action="append", metavar="PATH=VALUE@T",
+                   help="simulate from the operating point with this setting changed at T seconds, e.g. "
+                        "buses.pcc.load.r=0.6@0.02 (a load step; repeatable)")
+    p.add_argument("--duration", type=float, help="simulated time (s; default: 40 ms after the last step, at least 60 ms)")
+    p.add_argument("--out", help="CSV of the simulation: t, each unit's injected current (network frame), every state")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=cmd_microgrid)
 

@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from pisml_ros.analysis.microgrid import (Bus, Line, Microgrid, MicrogridError, Unit, microgrid_from_config,
-                                          microgrid_report, with_setting)
+                                          microgrid_report, simulate_stages, with_setting)
 from pisml_ros.ident.library import extended_library, monomial_basis, physics_library
 from pisml_ros.ident.roles import SignalRoles
 from pisml_ros.model import ExplicitModel
@@ -97,6 +97,27 @@ def test_identified_equations_stand_in_for_the_plant():
     assert all(u["p"] == pytest.approx(0.5, abs=0.02) for u in report["units"])
 
 
+def test_load_step_transient_is_the_same_with_the_equations():
+    """A load step simulated through the microgrid: at rest before it, and the plant's exact
+    equations as the target reproduce the plant's currents."""
+    plant = InverterPlant()
+    model = plant_as_explicit_model(plant)
+    runs = []
+    for target in (plant, model):
+        before = three_bus(target)
+        after = Microgrid(before.units, [*before.buses[:3], Bus("pcc", 0.05, load_r=0.6, load_x=0.4358)], before.lines)
+        x0 = before.equilibrium(1.0, 0.0)
+        t, x = simulate_stages([(before, 0.01), (after, 0.01)], x0, [1.0, 0.0])
+        currents = before.injected_currents(x)
+        assert np.abs(currents[t < 0.01] - currents[0]).max() < 1e-7  # nothing moves before the step
+        assert np.abs(currents[-1] - currents[0]).max() > 0.02  # the step moves every unit
+        runs.append(currents)
+    assert len(t) == 201 and np.abs(runs[0] - runs[1]).max() < 1e-6
+    with pytest.raises(MicrogridError, match="share their states"):
+        resistive = Microgrid(before.units, [*before.buses[:3], Bus("pcc", 0.05, load_r=0.6)], before.lines)
+        simulate_stages([(before, 0.01), (resistive, 0.01)], x0, [1.0, 0.0])
+
+
 def test_descriptions_that_cannot_be_assembled_say_what_is_wrong():
     plant = InverterPlant()
     with pytest.raises(MicrogridError, match="islanded"):
@@ -146,8 +167,12 @@ def test_cli_microgrid_with_an_identified_unit_and_a_sweep(tmp_path):
     plain = json.loads(pisml("microgrid", "--config", CONFIG, "--json", "--vary", "grid.ug=0.15:0.35:3").stdout)
     assert len(sweep["boundaries"]) == len(plain["sweep"]["boundaries"]) == 1
     assert sweep["boundaries"][0] == pytest.approx(plain["sweep"]["boundaries"][0], abs=1e-3)
-    text = pisml("microgrid", "--config", CONFIG).stdout
+    text = pisml("microgrid", "--config", CONFIG, "--step", "buses.pcc.load.r=0.6@0.01", "--duration", "0.02",
+                 "--out", tmp_path / "step.csv").stdout
     assert "STABLE" in text and "unit aux1 (InverterPlant) at bus b2" in text
+    assert "simulated 0.02 s (steps: buses.pcc.load.r = 0.6 at 0.01 s)" in text
+    table = np.genfromtxt(tmp_path / "step.csv", delimiter=",", names=True)
+    assert len(table) == 201 and table["targeti_D"][-1] > table["targeti_D"][0] + 0.02
     bad = pisml("microgrid", "--config", CONFIG, "--model", f"nobody={path}", check=False)
     assert bad.returncode == 2 and "UNIT one of the configuration's units ['target', 'aux1', 'aux2']" in bad.stderr
     missing = pisml("microgrid", "--config", tmp_path / "none.yaml", check=False)
