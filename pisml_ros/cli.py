@@ -402,8 +402,10 @@ def cmd_microgrid(args) -> int:
         print(json.dumps(report, indent=2))
         return 0
     op = report["operating_point"]
+    where = (f"islanded, frequency {report['frequency_pu']:.5f} p.u. (the network's frame turns with unit "
+             f"{microgrid.units[0].name})" if microgrid.islanded else f"grid source {op['ug']:g} p.u., {op['theta_g']:g} rad")
     print(f"microgrid: {len(microgrid.units)} units, {len(microgrid.buses)} buses, {len(microgrid.lines)} lines, "
-          f"{microgrid.n_states} states; grid source {op['ug']:g} p.u., {op['theta_g']:g} rad: "
+          f"{microgrid.n_states} states; {where}: "
           f"{'STABLE' if report['stable'] else 'UNSTABLE'} (max real part {report['max_real']:.4g} 1/s, "
           f"min damping {report['min_damping']:.3f})")
     for unit in report["units"]:

@@ -118,10 +118,51 @@ def test_load_step_transient_is_the_same_with_the_equations():
         simulate_stages([(before, 0.01), (resistive, 0.01)], x0, [1.0, 0.0])
 
 
+def islanded(target):
+    grid = three_bus(target)
+    return Microgrid(grid.units, grid.buses, grid.lines[:3])  # no line to the grid
+
+
+def test_islanded_microgrid_shares_the_load_by_droop():
+    grid = islanded(InverterPlant())
+    assert grid.islanded and "target.delta" not in grid.state_names and "aux1.delta" in grid.state_names
+    x = grid.equilibrium()
+    u = np.array([1.0, 0.0])
+    assert np.abs(grid.vector_field(x, u)).max() < 1e-6
+    # one frequency for all: each unit's droop w = 1 + mp (P* - Pf) at its own filtered power
+    w = grid.frequency(x)
+    for k, unit in enumerate(grid.units):
+        own = grid.unit_state(x, k)
+        assert 1.0 + unit.system.params.mp * (0.5 - own[1]) == pytest.approx(w, abs=1e-9)
+    # the units supply the loads and the lines' losses
+    report = microgrid_report(grid, modes=1)
+    supplied = sum(entry["p"] for entry in report["units"])
+    v = {b.name: x[grid.v_offset[b.name]:grid.v_offset[b.name] + 2] for b in grid.buses}
+    consumed = np.sum(v["b2"] ** 2) / 4.0  # resistive load at b2
+    o = grid.load_offset["pcc"]
+    consumed += 0.9 * np.sum(x[o:o + 2] ** 2)
+    consumed += sum(line.r * np.sum(x[grid.line_offset[k]:grid.line_offset[k] + 2] ** 2)
+                    for k, line in enumerate(grid.lines))
+    # less load than the set points (3 x 0.5 p.u.): the droops settle above the nominal frequency
+    assert supplied == pytest.approx(consumed, rel=1e-6) and supplied < 1.5 and w > 1.0
+    assert report["islanded"] and report["frequency_pu"] == pytest.approx(w)
+    # no structural zero mode (the reference angle is not a state), and the exact Jacobian
+    eigs = np.linalg.eigvals(grid.jacobian(x, u))
+    assert np.abs(eigs).min() > 1e-3
+    rng = np.random.default_rng(2)
+    x = x + 1e-2 * rng.standard_normal(x.size)
+    step = 1e-6
+    numeric = np.stack([(grid.vector_field(x + step * e, u) - grid.vector_field(x - step * e, u)) / (2 * step)
+                        for e in np.eye(grid.n_states)], axis=1)
+    exact = grid.jacobian(x, u)
+    assert np.abs(exact - numeric).max() < 1e-7 * np.abs(exact).max()
+    # the equations of the plant as the reference unit give the same modes
+    other = np.sort_complex(islanded(plant_as_explicit_model(InverterPlant())).eigenvalues())
+    assert np.abs(np.sort_complex(eigs) - other).max() < 1e-5 * np.abs(eigs).max()
+
+
 def test_descriptions_that_cannot_be_assembled_say_what_is_wrong():
     plant = InverterPlant()
-    with pytest.raises(MicrogridError, match="islanded"):
-        Microgrid([Unit("a", plant, "b")], [Bus("b")], [])
     with pytest.raises(MicrogridError, match="bus 'nowhere'"):
         Microgrid([Unit("a", plant, "nowhere")], [Bus("b")], [Line("b", "grid")])
     with pytest.raises(MicrogridError, match="capacitance"):

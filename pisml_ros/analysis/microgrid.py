@@ -20,7 +20,9 @@ forming an algebraic loop (the inverters' grid-side inductors are inside their m
 Pogaku et al. (2007), whose virtual resistor plays the same part. The grid source is an ideal
 voltage ``E∠θ`` behind a line; its magnitude and phase are the microgrid's inputs, so the
 microgrid is itself a system with ``equilibrium``, ``jacobian`` and ``eigenvalues`` over
-(``ug``, ``theta_g``), and everything in :mod:`pisml_ros.analysis` applies to it.
+(``ug``, ``theta_g``), and everything in :mod:`pisml_ros.analysis` applies to it. Without a line
+to the grid the microgrid is islanded: the droops and the load set its frequency, the network's
+frame turns with the first unit's, whose angle is then the reference and not a state.
 
 The equilibrium and modes are hand-assembled from the units' own exact Jacobians by the chain
 rule (no library assembles a network of arbitrary vector fields), then solved by scipy.
@@ -100,28 +102,30 @@ class Unit:
 
 
 class Microgrid:
-    """Inverter models, buses, lines and a grid source assembled into one system.
+    """Inverter models, buses, lines and (optionally) a grid source assembled into one system.
 
     Parameters
     ----------
     units : sequence of Unit
     buses : sequence of Bus
     lines : sequence of Line
-        At least one ends at ``"grid"``: the grid source pins the frequency (the inverters' angle
-        states are relative to a grid at ``wg``, as in their identification), so an islanded
-        network has an equilibrium only where its droops happen to balance; it is refused.
+        A line that ends at ``"grid"`` ties the microgrid to the grid source, which pins the
+        frequency at ``wg``: the network's frame rotates with it. Without one the microgrid is
+        islanded: its frequency is set by the droops and the load, the network's frame rotates
+        with the first unit's frame, and that unit's angle is the reference (not a state).
     base_hz : float
         Base frequency of the per-unit system (ωb = 2π·base_hz; the virtual HIL's is 60 Hz).
     wg : float
-        Frequency of the grid source and of the network frame (p.u.).
+        Frequency of the grid source (p.u.), the frame the units' angles are identified against.
 
     Attributes
     ----------
     state_names : tuple of str
-        ``<unit>.<state>`` for every unit, then ``<bus>.v_D``, ``<bus>.v_Q``, ``<bus>.iload_D/Q``
-        (inductive loads), ``line<k>.i_D/Q``.
+        ``<unit>.<state>`` for every unit (islanded: the first unit's angle left out), then
+        ``<bus>.v_D``, ``<bus>.v_Q``, ``<bus>.iload_D/Q`` (inductive loads), ``line<k>.i_D/Q``.
     input_names : tuple of str
-        ``ug``, ``theta_g``: the grid source's magnitude and phase.
+        ``ug``, ``theta_g``: the grid source's magnitude and phase (ignored when islanded).
+    islanded : bool
     """
 
     input_names = ("ug", "theta_g")
@@ -158,15 +162,19 @@ class Microgrid:
             if not line.x > 0 or line.r < 0:
                 raise MicrogridError(f"line {k} ({line.start} -> {line.end}): needs x > 0 and r >= 0 p.u., got "
                                      f"r={line.r}, x={line.x}")
-        if not any(line.end == GRID for line in self.lines):
-            raise MicrogridError(f"no line ends at {GRID!r}: an islanded microgrid is not supported (the units' angles "
-                                 f"are relative to a grid source; without one the network frame drifts)")
-        # the state layout: units, then bus voltages, inductive load currents, line currents
-        offsets, start = [], 0
-        for u in self.units:
-            offsets.append(start)
-            start += u.n_states
-        self.unit_offset = offsets
+        self.islanded = not any(line.end == GRID for line in self.lines)
+        # the state layout: units, then bus voltages, inductive load currents, line currents; each
+        # unit's local state k sits at slots[k] (-1: the islanded reference angle, fixed at 0)
+        slots, start = [], 0
+        for k, u in enumerate(self.units):
+            free = np.ones(u.n_states, dtype=bool)
+            if self.islanded and k == 0:
+                free[u.i_angle] = False
+            slot = np.full(u.n_states, -1)
+            slot[free] = start + np.arange(int(free.sum()))
+            slots.append(slot)
+            start += int(free.sum())
+        self.unit_slots = slots
         self.n_unit_states = start
         self.v_offset = {b.name: start + 2 * k for k, b in enumerate(self.buses)}
         start += 2 * len(self.buses)
@@ -177,7 +185,7 @@ class Microgrid:
                 start += 2
         self.line_offset = [start + 2 * k for k in range(len(self.lines))]
         self.n_states = start + 2 * len(self.lines)
-        names_out = [f"{u.name}.{s}" for u in self.units for s in u.state_names]
+        names_out = [f"{u.name}.{s}" for u, slot in zip(self.units, slots) for s, g in zip(u.state_names, slot) if g >= 0]
         names_out += [f"{b.name}.v_{ax}" for b in self.buses for ax in "DQ"]
         names_out += [f"{b}.iload_{ax}" for b in self.load_offset for ax in "DQ"]
         names_out += [f"line{k}.i_{ax}" for k in range(len(self.lines)) for ax in "DQ"]
@@ -189,23 +197,32 @@ class Microgrid:
         vd, vq = x[o], x[o + 1]
         return np.array([math.hypot(vd, vq), math.atan2(vq, vd)])
 
+    def unit_state(self, x, k) -> np.ndarray:
+        """Unit ``k``'s own state (its angle in the network's frame) at microgrid state ``x``."""
+        slot = self.unit_slots[k]
+        out = np.zeros(slot.size)
+        free = slot >= 0
+        out[free] = np.asarray(x, dtype=float)[..., slot[free]]
+        return out
+
     def _local(self, x, k):
         """Unit ``k``'s state and inputs in the frame of its bus voltage: its angle taken from
         the bus voltage's phase, and a grid phase of 0. For a model invariant to a common rotation
         (the plant, whose equations see only δ − θ_g) it is the same thing as the network frame; an
         identified model may also use the angle alone (``sin(delta)``: in its records δ stayed near
         θ_g), and holds only near the grid phase it was identified at, its test rig's reference."""
-        unit, o = self.units[k], self.unit_offset[k]
+        unit = self.units[k]
         inputs = self._unit_inputs(x, unit)
-        local = np.array(x[o:o + unit.n_states], dtype=float)
+        local = self.unit_state(x, k)
         local[unit.i_angle] -= inputs[1]
         return local, np.array([inputs[0], 0.0])
 
     def _unit_current(self, x, k):
         """The current unit ``k`` injects, in the network frame, and its derivative in (angle, i_d, i_q)."""
-        unit, o = self.units[k], self.unit_offset[k]
-        delta = x[o + unit.i_angle]
-        i_d, i_q = x[o + unit.i_current[0]], x[o + unit.i_current[1]]
+        unit = self.units[k]
+        own = self.unit_state(x, k)
+        delta = own[unit.i_angle]
+        i_d, i_q = own[unit.i_current[0]], own[unit.i_current[1]]
         c, s = math.cos(delta), math.sin(delta)
         current = np.array([i_d * c - i_q * s, i_d * s + i_q * c])
         # columns: ∂/∂angle, ∂/∂i_d, ∂/∂i_q
@@ -220,6 +237,14 @@ class Microgrid:
     def _source(self, u):
         return np.array([u[0] * math.cos(u[1]), u[0] * math.sin(u[1])])
 
+    def frequency(self, x, u=(1.0, 0.0)) -> float:
+        """The network frame's frequency (p.u.): the grid source's, or islanded the first unit's
+        (``wg`` plus its angle's rate over ωb)."""
+        if not self.islanded:
+            return self.wg
+        local, inputs = self._local(np.asarray(x, dtype=float), 0)
+        return self.wg + float(self.units[0].system.vector_field(local, inputs)[self.units[0].i_angle]) / self.wb
+
     # ---------------------------------------------------------------- the system
     def vector_field(self, x, u) -> np.ndarray:
         """dx/dt (1/s) of the whole microgrid at state ``x`` and grid source ``u = (ug, theta_g)``."""
@@ -227,18 +252,26 @@ class Microgrid:
         u = np.asarray(u, dtype=float)
         out = np.zeros(self.n_states)
         injected = {b.name: np.zeros(2) for b in self.buses}
+        rates = []
         for k, unit in enumerate(self.units):
-            o = self.unit_offset[k]
             local, inputs = self._local(x, k)
-            out[o:o + unit.n_states] = unit.system.vector_field(local, inputs)
+            rates.append(np.asarray(unit.system.vector_field(local, inputs), dtype=float))
             injected[unit.bus] += self._unit_current(x, k)[0]
-        wb, wg = self.wb, self.wg
+        # islanded, the frame turns with the first unit: every angle's rate is relative to its rate
+        reference = rates[0][self.units[0].i_angle] if self.islanded else 0.0
+        w = self.wg + reference / self.wb
+        for k, unit in enumerate(self.units):
+            rate = rates[k]
+            rate[unit.i_angle] -= reference
+            free = self.unit_slots[k] >= 0
+            out[self.unit_slots[k][free]] = rate[free]
+        wb = self.wb
         for b in self.buses:
             v = x[self.v_offset[b.name]:self.v_offset[b.name] + 2]
             if b.name in self.load_offset:
                 o = self.load_offset[b.name]
                 i = x[o:o + 2]
-                out[o:o + 2] = wb / b.load_x * (v - b.load_r * i) + wb * self._rotate(i, wg)
+                out[o:o + 2] = wb / b.load_x * (v - b.load_r * i) + wb * self._rotate(i, w)
                 injected[b.name] -= i
             elif b.load_r is not None:
                 injected[b.name] -= v / b.load_r
@@ -247,18 +280,19 @@ class Microgrid:
             i = x[o:o + 2]
             v_from = x[self.v_offset[line.start]:self.v_offset[line.start] + 2]
             v_to = self._source(u) if line.end == GRID else x[self.v_offset[line.end]:self.v_offset[line.end] + 2]
-            out[o:o + 2] = wb / line.x * (v_from - v_to - line.r * i) + wb * self._rotate(i, wg)
+            out[o:o + 2] = wb / line.x * (v_from - v_to - line.r * i) + wb * self._rotate(i, w)
             injected[line.start] -= i
             if line.end != GRID:
                 injected[line.end] += i
         for b in self.buses:
             o = self.v_offset[b.name]
-            out[o:o + 2] = wb / b.capacitance * injected[b.name] + wb * self._rotate(x[o:o + 2], wg)
+            out[o:o + 2] = wb / b.capacitance * injected[b.name] + wb * self._rotate(x[o:o + 2], w)
         return out
 
     def jacobian(self, x, u, wrt: str = "x") -> np.ndarray:
         """Exact Jacobian of :meth:`vector_field` (the units' own Jacobians, chained through the
-        bus voltages they see and the currents they inject).
+        bus voltages they see and the currents they inject; islanded, also through the frame's
+        frequency, the first unit's).
 
         Parameters
         ----------
@@ -267,7 +301,7 @@ class Microgrid:
         """
         x = np.asarray(x, dtype=float)
         u = np.asarray(u, dtype=float)
-        wb, wg = self.wb, self.wg
+        wb = self.wb
         if wrt == "u":
             out = np.zeros((self.n_states, 2))
             dsource = np.array([[math.cos(u[1]), -u[0] * math.sin(u[1])], [math.sin(u[1]), u[0] * math.cos(u[1])]])
@@ -280,12 +314,15 @@ class Microgrid:
             raise ValueError(f"wrt must be 'x' or 'u', got {wrt!r}")
         n = self.n_states
         a = np.zeros((n, n))
-        rot = np.array([[0.0, wg], [-wg, 0.0]])  # −j·wg as a 2×2 map on (D, Q)
+        rows = []  # per unit: the derivatives of its local rates in the microgrid's states (m × n)
+        reference = 0.0
         for k, unit in enumerate(self.units):
-            o, m = self.unit_offset[k], unit.n_states
+            m, slot = unit.n_states, self.unit_slots[k]
+            free = slot >= 0
             local, inputs = self._local(x, k)
             block = np.asarray(unit.system.jacobian(local, inputs, wrt="x"), dtype=float)
-            a[o:o + m, o:o + m] = block
+            full = np.zeros((m, n))
+            full[:, slot[free]] = block[:, free]
             # the bus voltage (v_D, v_Q) -> its magnitude (the unit's ug) and its phase, which
             # enters through the unit's angle in the bus frame (δ − θ_bus)
             ov = self.v_offset[unit.bus]
@@ -295,25 +332,50 @@ class Microgrid:
             dinputs = np.array([[vd / mag, vq / mag], [-vq / mag2, vd / mag2]])
             by_input = np.column_stack([np.asarray(unit.system.jacobian(local, inputs, wrt="u"), dtype=float)[:, 0],
                                         -block[:, unit.i_angle]])
-            a[o:o + m, ov:ov + 2] = by_input @ dinputs
+            full[:, ov:ov + 2] += by_input @ dinputs
+            rows.append(full)
+            if self.islanded and k == 0:
+                reference = float(unit.system.vector_field(local, inputs)[unit.i_angle])
+        w = self.wg + reference / wb
+        # islanded: ∂w/∂x·ωb, the first unit's angle rate's slope (every angle's rate is relative to it)
+        dw = rows[0][self.units[0].i_angle].copy() if self.islanded else np.zeros(n)
+        rot = np.array([[0.0, w], [-w, 0.0]])  # −j·w as a 2×2 map on (D, Q)
+        for k, unit in enumerate(self.units):
+            slot = self.unit_slots[k]
+            full = rows[k]
+            full[unit.i_angle] -= dw
+            free = slot >= 0
+            a[slot[free]] += full[free]
             # its current into the bus
             _, slope = self._unit_current(x, k)
-            cols = [o + unit.i_angle, o + unit.i_current[0], o + unit.i_current[1]]
+            cols = slot[[unit.i_angle, *unit.i_current]]
+            keep = cols >= 0
+            ov = self.v_offset[unit.bus]
             bus = self.buses[self.bus_index[unit.bus]]
-            a[np.ix_(range(ov, ov + 2), cols)] += wb / bus.capacitance * slope
+            a[np.ix_(range(ov, ov + 2), cols[keep])] += wb / bus.capacitance * slope[:, keep]
+
+        def rotation(o):
+            """The −j·w·(ωb·value) term of the pair at ``o``: its own 2×2 block, and the frame
+            frequency's slope (islanded)."""
+            a[o:o + 2, o:o + 2] += wb * rot
+            if self.islanded:
+                a[o:o + 2] += np.outer(self._rotate(x[o:o + 2], 1.0), dw)
+
         for b in self.buses:
             ov = self.v_offset[b.name]
-            a[ov:ov + 2, ov:ov + 2] += wb * rot
+            rotation(ov)
             if b.name in self.load_offset:
                 o = self.load_offset[b.name]
                 a[o:o + 2, ov:ov + 2] += wb / b.load_x * np.eye(2)
-                a[o:o + 2, o:o + 2] += -wb * b.load_r / b.load_x * np.eye(2) + wb * rot
+                a[o:o + 2, o:o + 2] += -wb * b.load_r / b.load_x * np.eye(2)
+                rotation(o)
                 a[ov:ov + 2, o:o + 2] += -wb / b.capacitance * np.eye(2)
             elif b.load_r is not None:
                 a[ov:ov + 2, ov:ov + 2] += -wb / (b.capacitance * b.load_r) * np.eye(2)
         for k, line in enumerate(self.lines):
             o = self.line_offset[k]
-            a[o:o + 2, o:o + 2] += -wb * line.r / line.x * np.eye(2) + wb * rot
+            a[o:o + 2, o:o + 2] += -wb * line.r / line.x * np.eye(2)
+            rotation(o)
             start = self.v_offset[line.start]
             a[o:o + 2, start:start + 2] += wb / line.x * np.eye(2)
             cap = self.buses[self.bus_index[line.start]].capacitance
@@ -343,15 +405,17 @@ class Microgrid:
         u = np.array([ug, theta_g], dtype=float)
         x = np.zeros(self.n_states)
         for b in self.buses:
-            x[self.v_offset[b.name]:self.v_offset[b.name] + 2] = self._source(u)
+            x[self.v_offset[b.name]:self.v_offset[b.name] + 2] = (1.0, 0.0) if self.islanded else self._source(u)
         for k, unit in enumerate(self.units):
-            o = self.unit_offset[k]
+            at = (1.0, 0.0) if self.islanded else (ug, 0.0)  # islanded: the units' nominal voltage
             try:
-                x[o:o + unit.n_states] = unit.system.equilibrium(ug, 0.0)  # in its bus frame (see _local)
-                x[o + unit.i_angle] += theta_g
+                own = np.array(unit.system.equilibrium(*at), dtype=float)  # in its bus frame (see _local)
             except Exception as exc:  # noqa: BLE001 - any model's failure to find one
-                raise EquilibriumNotFound(f"unit {unit.name!r} has no equilibrium of its own at the grid source's "
-                                          f"{ug:.4g} p.u., {theta_g:.4g} rad: {exc}") from exc
+                raise EquilibriumNotFound(f"unit {unit.name!r} has no equilibrium of its own at {at[0]:.4g} p.u., "
+                                          f"{theta_g:.4g} rad: {exc}") from exc
+            own[unit.i_angle] += 0.0 if self.islanded else theta_g
+            free = self.unit_slots[k] >= 0
+            x[self.unit_slots[k][free]] = own[free]
         return self._network_steady(x, u)
 
     def scaled(self, level: float) -> "Microgrid":
@@ -383,6 +447,23 @@ class Microgrid:
 
             return root(grid.vector_field, grid.jacobian, u, start, accept)
 
+        if self.islanded and x0 is None:
+            # no source to start from: the units at their own nominal points, the network in
+            # steady state with them, then the whole (lm on the row-scaled residual if Powell stalls)
+            start = self.initial_guess(ug, theta_g)
+            x = solve(self, start)
+            if x is None:
+                import scipy.optimize
+
+                scale = np.maximum(np.abs(self.jacobian(start, u)).sum(axis=1), 1.0)
+                sol = scipy.optimize.root(lambda z: self.vector_field(z, u) / scale, start,
+                                          jac=lambda z: self.jacobian(z, u) / scale[:, None], method="lm",
+                                          options={"xtol": 1e-14, "ftol": 1e-14})
+                x = sol.x if np.all(np.abs(self.vector_field(sol.x, u)) <= tol * scale) else None
+            if x is None:
+                raise EquilibriumNotFound("islanded microgrid: no operating point found from the units' own nominal "
+                                          "ones (is the load within what the units can supply?)")
+            return x
         if x0 is not None:
             x = solve(self, np.asarray(x0, dtype=float))
             if x is None:
@@ -419,9 +500,9 @@ class Microgrid:
         x = np.asarray(x, dtype=float)
         out = []
         for k, unit in enumerate(self.units):
-            o = self.unit_offset[k]
-            delta = x[..., o + unit.i_angle]
-            i_d, i_q = x[..., o + unit.i_current[0]], x[..., o + unit.i_current[1]]
+            slot = self.unit_slots[k]
+            delta = x[..., slot[unit.i_angle]] if slot[unit.i_angle] >= 0 else np.zeros(x.shape[:-1])
+            i_d, i_q = x[..., slot[unit.i_current[0]]], x[..., slot[unit.i_current[1]]]
             c, s = np.cos(delta), np.sin(delta)
             out.append(np.stack([i_d * c - i_q * s, i_d * s + i_q * c], axis=-1))
         return np.stack(out, axis=-2)
@@ -432,7 +513,7 @@ class Microgrid:
         and in the network's (fractions summing to 1)."""
         row = np.asarray(participation_row, dtype=float)
         total = max(float(row.sum()), 1e-300)
-        shares = {u.name: float(row[o:o + u.n_states].sum()) / total for u, o in zip(self.units, self.unit_offset)}
+        shares = {u.name: float(row[slot[slot >= 0]].sum()) / total for u, slot in zip(self.units, self.unit_slots)}
         shares["network"] = float(row[self.n_unit_states:].sum()) / total
         return shares
 
@@ -611,6 +692,8 @@ def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0
                 entry["note"] = note
         units.append(entry)
     report["units"] = units
+    report["islanded"] = microgrid.islanded
+    report["frequency_pu"] = microgrid.frequency(x, (ug, theta_g))
     a = microgrid.jacobian(x, [ug, theta_g])
     summary = modal_summary(a, microgrid.state_names)
     report["weakest_modes"] = [
