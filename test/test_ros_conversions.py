@@ -78,7 +78,7 @@ def test_failed_stability_report():
 
 def test_root_locus_of_the_plant_finds_its_boundary():
     from pisml_ros.plant import InverterPlant
-    from pisml_ros.ros.analyser import root_locus
+    from pisml_ros.analysis.margins import root_locus
 
     locus = root_locus(InverterPlant(), np.linspace(0.2, 1.3, 12))
     assert locus["boundaries"] == pytest.approx([1.1661], abs=1e-3)

@@ -39,7 +39,7 @@ from pisml_msgs.msg import IdentifiedModel, StabilityReport  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from ..analysis.margins import distance_to_boundary, stability_boundaries  # noqa: E402
+from ..analysis.margins import distance_to_boundary, root_locus  # noqa: E402
 from ..analysis.operating_point import coverage_note, data_coverage, operating_point_report  # noqa: E402
 from ..fileio import atomic_write_text  # noqa: E402
 from .conversions import failed_stability_message, model_from_message, stability_message  # noqa: E402
@@ -47,50 +47,6 @@ from .conversions import failed_stability_message, model_from_message, stability
 ROOT_LOCUS_TOPIC = "/pisml/root_locus"
 MICROGRID_TOPIC = "/pisml/microgrid"
 SWEEP_PARAMETERS = ("ug_points", "sweep_ug_min", "sweep_ug_max", "sweep_points", "theta_g")
-
-
-def root_locus(system, grid, theta_g: float = 0.0) -> dict:
-    """Eigenvalues of ``system`` at its equilibria along ``grid`` (values of ug), and the
-    stability boundaries (crossings of the imaginary axis, refined by Brent's method).
-
-    Returns
-    -------
-    dict
-        ``{"ug": [...], "theta_g", "eigenvalues": [[[re, im], ...] or None per ug],
-        "max_real": [... or None], "boundaries": [...], "errors": {ug: message}}``
-    """
-    eig_at, errors = {}, {}
-    eq_at: dict = {}  # equilibria found so far, by ug
-
-    def max_real(g):
-        g = float(g)
-        if g not in eig_at:
-            # from the nearest equilibrium found so far one root search usually suffices; the search
-            # from the model's reference points (a 20-step continuation) is the fallback: 20x the cost
-            near = min(eq_at, key=lambda h: abs(h - g)) if eq_at else None
-            x = system.equilibrium(g, theta_g, x0=eq_at[near] if near is not None else None)
-            eq_at[g] = x
-            eig_at[g] = np.linalg.eigvals(system.jacobian(x, np.array([g, theta_g])))
-        return float(np.max(eig_at[g].real))
-
-    for g in grid:
-        try:
-            max_real(g)
-        except Exception as err:  # no equilibrium there: recorded, the sweep goes on
-            errors[f"{float(g):g}"] = str(err)
-    boundaries = stability_boundaries(max_real, [float(g) for g in grid if float(g) in eig_at])
-    out_eig, out_max = [], []
-    for g in grid:
-        lam = eig_at.get(float(g))
-        if lam is None:
-            out_eig.append(None)
-            out_max.append(None)
-        else:
-            lam = lam[np.lexsort((-lam.imag, -lam.real))]
-            out_eig.append([[float(z.real), float(z.imag)] for z in lam])
-            out_max.append(float(np.max(lam.real)))
-    return {"ug": [float(g) for g in grid], "theta_g": float(theta_g), "eigenvalues": out_eig, "max_real": out_max,
-            "boundaries": boundaries, "errors": errors}
 
 
 def warm_up() -> float:
