@@ -328,6 +328,12 @@ def test_demo_runs_the_live_graph_and_writes_its_report(tmp_path):
                  "stability_scan.png", "test_trajectories.png"):
         assert (out / name).stat().st_size > 10_000, name
     assert (out / "identifier" / "latest.json").is_file() and (out / "logs" / "identifier.log").is_file()
+    # the identified inverter as the target of the 3-bus microgrid (the analyser's /pisml/microgrid)
+    assert "in the microgrid of microgrid.yaml (units target, aux1, aux2; the identified model as unit target" in text
+    assert "stability boundary in units.aux1.plant.mp (0.05-0.3): model " in text and "| plant 0.1326" in text
+    grid = json.loads((out / "microgrid.json").read_text())
+    assert grid["model"]["model_id"] == "mod-sindy-1" and grid["model"]["unit"] == "target"
+    assert grid["plant"]["stable"] and grid["boundaries"]["plant"] == pytest.approx([0.1326], abs=1e-3)
     bad = subprocess.run([sys.executable, "-m", "pisml_ros.cli", "demo", "--out", str(out), "--method", "nope"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--method 'nope'" in bad.stderr

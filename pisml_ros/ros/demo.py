@@ -31,6 +31,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 NODES = ("analyser", "identifier", "measurement")
+MICROGRID_CONFIG = "config/microgrid.yaml"
+MICROGRID_VARY = ("units.aux1.plant.mp", (0.05, 0.1, 0.15, 0.2, 0.25, 0.3))  # the boundary the demo reports
 UG_POINTS = [0.4, 0.8, 1.0, 1.2]
 
 
@@ -82,6 +84,9 @@ def _params(out: Path, bags: dict, method: str | None) -> tuple[Path, dict]:
         section["identifier"]["method"] = method
     section["identifier"].setdefault("method", "pisml")
     section["analyser"].update(ug_points=UG_POINTS, analyse_plant=False, output_dir=str(out / "analyser"))
+    microgrid = _find(MICROGRID_CONFIG)
+    # the identified inverter also as the target of the paper's 3-bus microgrid (/pisml/microgrid)
+    section["analyser"].update(microgrid_config=str(microgrid) if microgrid else "", microgrid_unit="target")
     path = out / "params.yaml"
     path.write_text(yaml.safe_dump({name: {"ros__parameters": values} for name, values in section.items()},
                                    sort_keys=False))
@@ -103,7 +108,7 @@ class Graph:
         self.logs = out / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
         self.procs: dict[str, subprocess.Popen] = {}
-        self.models, self.reports, self.loci, self.diags = [], [], [], {}
+        self.models, self.reports, self.loci, self.microgrids, self.diags = [], [], [], [], {}
 
     def start(self, env):
         import rclpy
@@ -122,6 +127,8 @@ class Graph:
                                       lambda msg: self.reports.append((next(arrival), msg)), latched_qos(32))
         self.node.create_subscription(String, "/pisml/root_locus",
                                       lambda msg: self.loci.append((next(arrival), msg)), latched_qos())
+        self.node.create_subscription(String, "/pisml/microgrid",
+                                      lambda msg: self.microgrids.append((next(arrival), msg)), latched_qos())
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
         for name in NODES:
             log = open(self.logs / f"{name}.log", "w")
@@ -186,7 +193,7 @@ def _progress_line(values: dict) -> str:
     return f"identifier: {stage} {progress * 100:3.0f} %{epoch}{'; ' + losses if losses else ''}"
 
 
-def _watch(graph: Graph, ug_points, timeout: float, say):
+def _watch(graph: Graph, ug_points, timeout: float, say, microgrid: bool = False):
     """Wait for the final model and its reports at every operating point (and its root locus)."""
     from .conversions import message_metrics
 
@@ -219,9 +226,10 @@ def _watch(graph: Graph, ug_points, timeout: float, say):
             final = finals[-1]
             reports, locus = final_analysis(final, graph.reports, graph.loci)
             if not final.model_json:
-                return final, {}, None
-            if all(round(ug, 6) in reports for ug in ug_points) and locus is not None:
-                return final, reports, locus
+                return final, {}, None, None
+            grid = final_analysis(final, graph.reports, graph.microgrids)[1] if microgrid else None
+            if all(round(ug, 6) in reports for ug in ug_points) and locus is not None and (grid or not microgrid):
+                return final, reports, locus, grid
         if time.monotonic() > deadline:
             raise DemoError(f"no final model and stability reports within {timeout:g} s (last: {last_line}); "
                             f"logs in {graph.logs}")
@@ -230,7 +238,8 @@ def _watch(graph: Graph, ug_points, timeout: float, say):
 def final_analysis(final, reports: list, loci: list) -> tuple[dict, dict | None]:
     """The analyser's StabilityReports on the final model by ug, and its root locus (None until it came).
 
-    ``reports`` and ``loci`` are ``(arrival order, message)`` pairs. Every stage of an identifier
+    ``reports`` and ``loci`` are ``(arrival order, message)`` pairs (``loci`` may be another
+    JSON topic the analyser publishes after the reports, such as /pisml/microgrid). Every stage of an identifier
     run shares its model_id: the final model's reports are the ones stamped after the final model
     was published, its locus the first one with its model_id after them (the analyser publishes a
     model's locus after its reports). Before, the demo could print the reports on a run's first
@@ -305,7 +314,8 @@ def run_demo(out: Path, quiet: bool = False, method: str | None = None, timeout:
     try:
         graph.start(env)
         say("all three nodes are up; measurements flowing")
-        final, reports, locus = _watch(graph, UG_POINTS, timeout - (time.monotonic() - started), say)
+        final, reports, locus, grid = _watch(graph, UG_POINTS, timeout - (time.monotonic() - started), say,
+                                             microgrid=bool(section["analyser"]["microgrid_config"]))
     except DemoError as err:
         print(f"demo: {err}", file=sys.stderr, flush=True)
         return 1
@@ -315,7 +325,61 @@ def run_demo(out: Path, quiet: bool = False, method: str | None = None, timeout:
     finally:
         graph.stop()
     say(f"final model {final.model_id} received after {time.monotonic() - started:.0f} s; nodes stopped")
-    return _report(out, final, reports, locus, bags, say, quiet)
+    code = _report(out, final, reports, locus, bags, say, quiet)
+    if code == 0 and grid is not None:
+        try:
+            _microgrid_part(out, final, grid, Path(section["analyser"]["microgrid_config"]), say)
+        except Exception as err:  # the microgrid is an extra: its failure is reported, the demo's result stands
+            say(f"microgrid analysis failed: {type(err).__name__}: {err}")
+    return code
+
+
+def _microgrid_part(out: Path, final, grid: dict, config_path: Path, say) -> None:
+    """The analyser's report on the identified inverter inside the microgrid of ``config_path``,
+    beside the same microgrid around the plant, and the boundary in an auxiliary unit's droop
+    gain for both (``microgrid.json``)."""
+    import yaml
+
+    from ..analysis.margins import stability_boundaries
+    from ..analysis.microgrid import microgrid_from_config, microgrid_report, with_setting
+    from .conversions import model_from_message
+
+    config = yaml.safe_load(config_path.read_text())["microgrid"]
+    model = model_from_message(final)
+    entry = {k: v for k, v in config["units"][0].items() if k not in ("plant", "model")}
+    with_model = with_setting(config, "units.0", dict(entry, model="identified.json"))
+    loaded = {str(config_path.parent / "identified.json"): model}
+    path, values = MICROGRID_VARY
+
+    def boundary(cfg):
+        def max_real(value):
+            system, inputs = microgrid_from_config(with_setting(cfg, path, value), config_path.parent, loaded=loaded)
+            x = system.equilibrium(*inputs)
+            return float(np.max(np.linalg.eigvals(system.jacobian(x, inputs)).real))
+
+        return stability_boundaries(max_real, values, xtol=1e-4)
+
+    plant_grid, inputs = microgrid_from_config(config, config_path.parent)
+    truth = microgrid_report(plant_grid, *inputs)
+    part = {"config": str(config_path), "model": json.loads(json.dumps(grid)), "plant": truth,
+            "vary": path, "boundaries": {"model": boundary(with_model), "plant": boundary(config)}}
+    (out / "microgrid.json").write_text(json.dumps(_clean(part), indent=1) + "\n")
+    names = ", ".join(u["name"] for u in truth["units"])
+    say(f"in the microgrid of {config_path.name} (units {names}; the identified model as unit {grid.get('unit')}, "
+        f"against the plant there):")
+    if "error" in grid:
+        say(f"  model: no operating point ({grid['error']}) | plant: "
+            f"{'stable' if truth['stable'] else 'UNSTABLE'}, max Re λ = {truth['max_real']:+.3f} 1/s")
+    else:
+        mode = grid["weakest_modes"][0]
+        shares = ", ".join(f"{k} {v:.0%}" for k, v in mode["unit_shares"].items() if v >= 0.01)
+        say(f"  model {'stable' if grid['stable'] else 'UNSTABLE'}, max Re λ = {grid['max_real']:+.3f} 1/s (weakest "
+            f"mode {mode['eigenvalue'][0]:+.3f} {mode['eigenvalue'][1]:+.3f}j: {shares}) | plant "
+            f"{'stable' if truth['stable'] else 'UNSTABLE'}, max Re λ = {truth['max_real']:+.3f} 1/s")
+    bounds = part["boundaries"]
+    fmt = lambda values_: ", ".join(f"{b:.4f}" for b in values_) or "none"  # noqa: E731
+    say(f"  stability boundary in {path} ({values[0]:g}-{values[-1]:g}): model {fmt(bounds['model'])} | plant "
+        f"{fmt(bounds['plant'])}")
 
 
 def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool) -> int:
@@ -426,5 +490,5 @@ def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool
         say(f"test recording: ε_IOD = {errors['iod']:.2f} %, ε_OOD = {errors['ood']:.2f} % (per scored state; "
             f"the four states taken together: {errors['iod_vector']:.2f} %, {errors['ood_vector']:.2f} %)")
     say(f"report folder: {out}/ (model.json, equations.txt, stability.json, model_vs_measured.png, eigenvalues.png, "
-        f"coefficients.png, training_curves.png, stability_scan*.png, logs/)")
+        f"coefficients.png, training_curves.png, stability_scan*.png, microgrid.json, logs/)")
     return 0
