@@ -380,15 +380,20 @@ def cmd_microgrid(args) -> int:
         if args.vary:
             vary_path, values = _vary_values(args.vary)
 
+            spectra = {}
+
             def max_real(value):
                 grid_, inputs_ = build(with_setting(config, vary_path, value))
                 x = grid_.equilibrium(*inputs_)
-                return float(np.max(np.linalg.eigvals(grid_.jacobian(x, inputs_)).real))
+                spectra[value] = np.linalg.eigvals(grid_.jacobian(x, inputs_))
+                return float(np.max(spectra[value].real))
 
             rows = []
             for value in values:
                 try:
-                    rows.append({"value": value, "max_real": max_real(value)})
+                    rows.append({"value": value, "max_real": max_real(value),
+                                 # the root locus: every eigenvalue at each value
+                                 "eigenvalues": [[float(z.real), float(z.imag)] for z in spectra[value]]})
                 except (EquilibriumError, EquilibriumNotFound) as err:
                     rows.append({"value": value, "max_real": None, "error": str(err)})
             ordered = sorted(values)

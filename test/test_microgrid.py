@@ -204,6 +204,7 @@ def test_cli_microgrid_with_an_identified_unit_and_a_sweep(tmp_path):
     assert out["stable"] and out["units"][0]["kind"] == "ExplicitModel"
     sweep = out["sweep"]
     assert sweep["parameter"] == "grid.ug" and len(sweep["points"]) == 3
+    assert all(len(point["eigenvalues"]) == 57 for point in sweep["points"])  # the root locus
     # the same boundary as with the plant itself as the target
     plain = json.loads(pisml("microgrid", "--config", CONFIG, "--json", "--vary", "grid.ug=0.15:0.35:3").stdout)
     assert len(sweep["boundaries"]) == len(plain["sweep"]["boundaries"]) == 1
