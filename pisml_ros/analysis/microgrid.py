@@ -631,7 +631,10 @@ def microgrid_from_config(config: dict, base_dir=".", source: str = "microgrid",
         units.append(Unit(str(entry.get("name", f"unit{k}")), system, str(entry["bus"]),
                           angle=str(entry.get("angle", "delta")), current=tuple(map(str, current))))
     base_hz = _number(config.get("base_hz", DEFAULT_BASE_HZ), f"{source}: base_hz", positive=True)
-    return Microgrid(units, buses, lines, base_hz=base_hz), inputs
+    try:
+        return Microgrid(units, buses, lines, base_hz=base_hz), inputs
+    except MicrogridError as err:
+        raise MicrogridError(f"{source}: {err}") from None
 
 
 def with_setting(config: dict, path: str, value) -> dict:
