@@ -79,6 +79,16 @@ def test_one_unit_on_a_stiff_bus_has_the_plant_modes():
     assert len(eigs) == plant.n_states + 4
 
 
+def test_a_line_in_series_is_the_plant_with_a_larger_grid_inductance():
+    """An independent check of the network's frames and rotations: a unit behind a line (bus
+    capacitance → 0) is the plant with the line's r and x added to its own Rg and Lg."""
+    merged = InverterPlant(PlantParameters(Lg=0.15, Rg=0.03))
+    grid = Microgrid([Unit("inv", InverterPlant(), "b")], [Bus("b", capacitance=1e-5)], [Line("b", "grid", 0.02, 0.1)])
+    eigs = grid.eigenvalues(1.0, 0.0)
+    for reference in merged.eigenvalues(1.0, 0.0):
+        assert np.min(np.abs(eigs - reference)) < 2e-4 * max(1.0, abs(reference))
+
+
 def test_identified_equations_stand_in_for_the_plant():
     """The target as explicit model equations (here: the plant's exact ones, over the engine's
     monomials) gives the same microgrid: operating point, modes, stability boundary."""
