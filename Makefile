@@ -55,9 +55,9 @@ bench-oracle: env
 	$(PY) bench/oracle_bench.py
 
 # the identified inverter inside the 3-bus microgrid of config/microgrid.yaml against the true plant there,
-# PISML and Mod-SINDy, clean recording 0 and 40 dB recordings 0-2 (~4 min): bench/microgrid_results.json, bench/MICROGRID_RESULTS.md
+# PISML and Mod-SINDy, clean recording 0 and 40 dB recordings 0-9 (~10 min): bench/microgrid_results.json, bench/MICROGRID_RESULTS.md
 bench-microgrid: env
-	$(PY) bench/microgrid_bench.py --seeds 0,1,2 --clean
+	$(PY) bench/microgrid_bench.py --seeds 0-9 --clean
 
 clean:
 	rm -rf build install log out .pytest_cache

@@ -14,7 +14,7 @@ and method (PISML and the Mod-SINDy baseline) it prints and writes:
 - a load step (the load bus's resistance 0.9 -> 0.6 p.u.): each unit's injected current against
   the true microgrid's, the paper's large-signal check of the 3-bus system.
 
-    .venv/bin/python bench/microgrid_bench.py [--seeds 0,1,2] [--noise 40] [--clean] \
+    .venv/bin/python bench/microgrid_bench.py [--seeds 0-9] [--noise 40] [--clean] \
         [--methods pisml,mod-sindy] [--out bench/microgrid_results.json] [--markdown bench/MICROGRID_RESULTS.md]
 """
 from __future__ import annotations
@@ -40,15 +40,13 @@ STEP = ("buses.pcc.load.r", 0.6, 0.02, 0.06)  # the load bus's resistance 0.9 ->
 
 def assess(config: dict, target, reference: dict | None = None) -> dict:
     """The microgrid around ``target`` (a system, or None for the plant of the configuration)."""
-    from pisml_ros.analysis.margins import stability_boundaries
     from pisml_ros.analysis.metrics import spectrum_wasserstein
-    from pisml_ros.analysis.microgrid import microgrid_from_config, microgrid_report, simulate_stages, with_setting
+    from pisml_ros.analysis.microgrid import (microgrid_from_config, microgrid_report, parameter_sweep, simulate_stages,
+                                              with_setting, with_unit_model)
 
     loaded = {}
-    if target is not None:  # the target's entry names the model in memory (microgrid_from_config's cache)
-        loaded[str(CONFIG.parent / "identified-target.json")] = target
-        entry = {k: v for k, v in config["units"][0].items() if k != "plant"}
-        config = with_setting(config, "units.0", dict(entry, model="identified-target.json"))
+    if target is not None:
+        config, loaded = with_unit_model(config, "target", target, CONFIG.parent)
 
     def build(cfg):
         return microgrid_from_config(cfg, CONFIG.parent, loaded=loaded)[0]
@@ -69,12 +67,7 @@ def assess(config: dict, target, reference: dict | None = None) -> dict:
             entry["error"] = f"{type(err).__name__}: {err}"
         row["grid"][str(ug)] = entry
 
-    def max_real(value):
-        grid = build(with_setting(config, VARY, value))
-        x = grid.equilibrium(1.0, 0.0)
-        return float(np.max(np.linalg.eigvals(grid.jacobian(x, [1.0, 0.0])).real))
-
-    row["boundaries"] = stability_boundaries(max_real, VARY_GRID, xtol=1e-4)
+    row["boundaries"] = parameter_sweep(config, VARY, VARY_GRID, CONFIG.parent, loaded=loaded)["boundaries"]
     # the paper's large-signal check: a load step, each unit's injected current against the truth's
     path, value, at, end = STEP
     try:
@@ -177,14 +170,17 @@ def main(argv=None) -> int:
     from pisml_ros.ident import IdentConfig, make_estimator
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", default="0,1,2", help="recordings (scenario and noise seeds), comma-separated")
+    parser.add_argument("--seeds", default="0-9", help="recordings (scenario and noise seeds), e.g. 0-9 or 0,2,5")
     parser.add_argument("--noise", type=float, default=40.0, help="SNR (dB) of the noisy recordings")
     parser.add_argument("--clean", action="store_true", help="also the clean recording of the first seed")
     parser.add_argument("--methods", default="pisml,mod-sindy")
     parser.add_argument("--out", default=str(BENCH / "microgrid_results.json"))
     parser.add_argument("--markdown", default=str(BENCH / "MICROGRID_RESULTS.md"))
     args = parser.parse_args(argv)
-    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    seeds = []
+    for part in (p.strip() for p in args.seeds.split(",") if p.strip()):
+        low, _, high = part.partition("-")
+        seeds += list(range(int(low), int(high or low) + 1))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     config = yaml.safe_load(CONFIG.read_text())["microgrid"]
     started = time.monotonic()

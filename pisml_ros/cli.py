@@ -338,8 +338,7 @@ def cmd_microgrid(args) -> int:
     import numpy as np
     import yaml
 
-    from .analysis.margins import stability_boundaries
-    from .analysis.microgrid import MicrogridError, microgrid_from_config, microgrid_report, with_setting
+    from .analysis.microgrid import MicrogridError, microgrid_from_config, microgrid_report, parameter_sweep
     from .model import EquilibriumNotFound
     from .plant import EquilibriumError
 
@@ -379,26 +378,8 @@ def cmd_microgrid(args) -> int:
         report = microgrid_report(microgrid, *inputs, modes=args.modes)
         if args.vary:
             vary_path, values = _vary_values(args.vary)
-
-            spectra = {}
-
-            def max_real(value):
-                grid_, inputs_ = build(with_setting(config, vary_path, value))
-                x = grid_.equilibrium(*inputs_)
-                spectra[value] = np.linalg.eigvals(grid_.jacobian(x, inputs_))
-                return float(np.max(spectra[value].real))
-
-            rows = []
-            for value in values:
-                try:
-                    rows.append({"value": value, "max_real": max_real(value),
-                                 # the root locus: every eigenvalue at each value
-                                 "eigenvalues": [[float(z.real), float(z.imag)] for z in spectra[value]]})
-                except (EquilibriumError, EquilibriumNotFound) as err:
-                    rows.append({"value": value, "max_real": None, "error": str(err)})
-            ordered = sorted(values)
-            report["sweep"] = {"parameter": vary_path, "points": rows,
-                               "boundaries": stability_boundaries(max_real, ordered)}
+            report["sweep"] = parameter_sweep(config, vary_path, values, base_dir=path.parent, loaded=loaded,
+                                              source=source)
         if args.step or args.out:
             report["simulation"] = _microgrid_transient(args, config, build, microgrid, inputs)
     except (MicrogridError, ModelFormatError, EquilibriumError, EquilibriumNotFound) as err:

@@ -668,6 +668,54 @@ def with_setting(config: dict, path: str, value) -> dict:
     return out
 
 
+def with_unit_model(config: dict, unit: str, model, base_dir=".", loaded: dict | None = None) -> tuple:
+    """A copy of ``config`` whose unit ``unit`` (its name) takes its equations from ``model``, a
+    system in memory (an identified model just received, say), and the ``loaded`` dict that
+    :func:`microgrid_from_config` then finds it in. Returns ``(config, loaded)``."""
+    units = config.get("units") if isinstance(config, dict) else None
+    names = [str(entry.get("name")) for entry in units or [] if isinstance(entry, dict)]
+    if unit not in names:
+        raise MicrogridError(f"unit {unit!r} is not among the configuration's units {names}")
+    index = names.index(unit)
+    key = f"in-memory-model-of-{unit}"
+    entry = {k: v for k, v in units[index].items() if k not in ("plant", "model")}
+    loaded = dict(loaded or {})
+    loaded[str(Path(base_dir) / key)] = model
+    return with_setting(config, f"units.{index}", dict(entry, model=key)), loaded
+
+
+def parameter_sweep(config: dict, path: str, values, base_dir=".", loaded: dict | None = None,
+                    source: str = "microgrid") -> dict:
+    """The microgrid's modes as one setting (dotted ``path``, :func:`with_setting`) takes
+    ``values``, and the stability boundaries between them (Brent's method on the largest real
+    part's sign change, :func:`~pisml_ros.analysis.margins.stability_boundaries`).
+
+    Returns
+    -------
+    dict
+        ``{"parameter", "points": [{"value", "max_real", "eigenvalues"} (the root locus), or
+        {"value", "max_real": None, "error"} where there is no operating point], "boundaries"}``
+    """
+    from .margins import stability_boundaries
+
+    loaded = {} if loaded is None else loaded
+    spectra = {}
+
+    def max_real(value):
+        grid, inputs = microgrid_from_config(with_setting(config, path, value), base_dir, source=source, loaded=loaded)
+        spectra[value] = np.linalg.eigvals(grid.jacobian(grid.equilibrium(*inputs), inputs))
+        return float(np.max(spectra[value].real))
+
+    points = []
+    for value in values:
+        try:
+            points.append({"value": float(value), "max_real": max_real(value),
+                           "eigenvalues": [[float(z.real), float(z.imag)] for z in spectra[value]]})
+        except EquilibriumNotFound as err:
+            points.append({"value": float(value), "max_real": None, "error": str(err)})
+    return {"parameter": path, "points": points, "boundaries": stability_boundaries(max_real, sorted(values), xtol=1e-6)}
+
+
 def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0, modes: int = 3) -> dict:
     """The microgrid's operating point and modes
     (:func:`~pisml_ros.analysis.operating_point.operating_point_report`), plus per unit the bus

@@ -285,15 +285,13 @@ class AnalyserNode(Node):
     def _report_microgrid(self, system, model_id: str):
         """The microgrid of ``microgrid_config`` with ``system`` as its unit ``microgrid_unit``:
         its report on /pisml/microgrid, and a diagnostic status."""
-        from ..analysis.microgrid import microgrid_from_config, microgrid_report, with_setting
+        from ..analysis.microgrid import microgrid_from_config, microgrid_report, with_unit_model
 
         config, unit, base = self.microgrid
         name = "pisml: microgrid"
-        index = [str(entry.get("name")) for entry in config["units"]].index(unit)
-        entry = {k: v for k, v in config["units"][index].items() if k not in ("plant", "model")}
-        config = with_setting(config, f"units.{index}", dict(entry, model="analysed-model.json"))
+        config, loaded = with_unit_model(config, unit, system, base)
         try:
-            grid, inputs = microgrid_from_config(config, base, loaded={str(base / "analysed-model.json"): system})
+            grid, inputs = microgrid_from_config(config, base, loaded=loaded)
             report = microgrid_report(grid, *inputs)
         except Exception as err:  # no operating point: reported, the node goes on
             text = f"{model_id} as microgrid unit {unit!r}: {err}"

@@ -340,24 +340,16 @@ def _microgrid_part(out: Path, final, grid: dict, config_path: Path, say) -> Non
     gain for both (``microgrid.json``)."""
     import yaml
 
-    from ..analysis.margins import stability_boundaries
-    from ..analysis.microgrid import microgrid_from_config, microgrid_report, with_setting
+    from ..analysis.microgrid import microgrid_from_config, microgrid_report, parameter_sweep, with_unit_model
     from .conversions import model_from_message
 
     config = yaml.safe_load(config_path.read_text())["microgrid"]
-    model = model_from_message(final)
-    entry = {k: v for k, v in config["units"][0].items() if k not in ("plant", "model")}
-    with_model = with_setting(config, "units.0", dict(entry, model="identified.json"))
-    loaded = {str(config_path.parent / "identified.json"): model}
+    with_model, loaded = with_unit_model(config, str(grid.get("unit", "target")), model_from_message(final),
+                                         config_path.parent)
     path, values = MICROGRID_VARY
 
     def boundary(cfg):
-        def max_real(value):
-            system, inputs = microgrid_from_config(with_setting(cfg, path, value), config_path.parent, loaded=loaded)
-            x = system.equilibrium(*inputs)
-            return float(np.max(np.linalg.eigvals(system.jacobian(x, inputs)).real))
-
-        return stability_boundaries(max_real, values, xtol=1e-4)
+        return parameter_sweep(cfg, path, values, config_path.parent, loaded=loaded)["boundaries"]
 
     plant_grid, inputs = microgrid_from_config(config, config_path.parent)
     truth = microgrid_report(plant_grid, *inputs)
