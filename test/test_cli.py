@@ -1,21 +1,13 @@
 """The `pisml` command as a user runs it: outputs, exit statuses, one-line errors."""
 import csv
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 from pisml_ros.signals import INPUT_NAMES, STATE_NAMES
 
-
-def pisml(*args, check=True):
-    proc = subprocess.run([sys.executable, "-m", "pisml_ros.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=300)
-    if check and proc.returncode != 0:
-        raise AssertionError(f"pisml {' '.join(map(str, args))} failed ({proc.returncode}): {proc.stderr}")
-    return proc
+from cli_helpers import pisml
 
 
 def test_simulate_csv_opens_in_a_plain_csv_reader(tmp_path):

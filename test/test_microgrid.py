@@ -1,7 +1,5 @@
 """Multi-inverter assembly (pisml_ros.analysis.microgrid) and `pisml microgrid`."""
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +13,8 @@ from pisml_ros.ident.roles import SignalRoles
 from pisml_ros.model import ExplicitModel
 from pisml_ros.plant import InverterPlant, PlantParameters
 from pisml_ros.signals import INPUT_NAMES, STATE_NAMES
+
+from cli_helpers import pisml
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config" / "microgrid.yaml"
@@ -196,14 +196,6 @@ def test_setting_by_name_or_index():
     changed = with_setting(with_setting(config, "units.aux2.plant.KpV", 3.0), "lines.3.x", 0.4)
     assert changed["units"][2]["plant"]["KpV"] == 3.0 and changed["lines"][3]["x"] == 0.4
     assert config["units"][2]["plant"]["KpV"] == 1.4  # a copy
-
-
-def pisml(*args, check=True):
-    proc = subprocess.run([sys.executable, "-m", "pisml_ros.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=300)
-    if check and proc.returncode != 0:
-        raise AssertionError(f"pisml {' '.join(map(str, args))} failed ({proc.returncode}): {proc.stderr}")
-    return proc
 
 
 def test_cli_microgrid_with_an_identified_unit_and_a_sweep(tmp_path):
