@@ -209,6 +209,9 @@ def main(argv=None) -> int:
     figure(truth, rows, BENCH / "figures" / "microgrid_load_step.png")
     for row in [truth, *rows]:  # the waveforms are in the figure; the results file keeps the errors
         row.pop("transient", None)
+    for row in rows:  # and the truth's spectra, the models' distances to them (W)
+        for entry in row["grid"].values():
+            entry.pop("eigenvalues", None)
     results = {"args": " ".join(argv if argv is not None else sys.argv[1:]), "machine": machine(),
                "date": time.strftime("%Y-%m-%d"), "seconds": time.monotonic() - started,
                "config": str(CONFIG.relative_to(BENCH.parent)), "vary": VARY, "truth": truth, "rows": rows}
