@@ -335,7 +335,6 @@ def _microgrid_transient(args, config, build, microgrid, inputs) -> dict:
 
 
 def cmd_microgrid(args) -> int:
-    import numpy as np
     import yaml
 
     from .analysis.microgrid import MicrogridError, microgrid_from_config, microgrid_report, parameter_sweep
