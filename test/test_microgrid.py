@@ -89,6 +89,21 @@ def test_a_line_in_series_is_the_plant_with_a_larger_grid_inductance():
         assert np.min(np.abs(eigs - reference)) < 2e-4 * max(1.0, abs(reference))
 
 
+def test_two_units_of_half_the_rating_are_one_of_the_full_rating():
+    plant = InverterPlant()
+    network = ([Bus("b", 0.02, load_r=2.0, load_x=0.5)], [Line("b", "grid", 0.01, 0.1)])
+    one = Microgrid([Unit("one", plant, "b")], *network)
+    two = Microgrid([Unit("a", plant, "b", rating=0.5), Unit("b", plant, "b", rating=0.5)], *network)
+    x1, x2 = one.equilibrium(), two.equilibrium()
+    assert np.allclose(one.injected_currents(x1)[0], two.injected_currents(x2).sum(axis=0), atol=1e-8)
+    assert np.allclose(x1[one.n_unit_states:], x2[two.n_unit_states:], atol=1e-8)  # the same network state
+    eigs = two.eigenvalues()
+    for reference in one.eigenvalues():  # the pair's common mode is the single unit's
+        assert np.min(np.abs(eigs - reference)) < 1e-6 * max(1.0, abs(reference))
+    with pytest.raises(MicrogridError, match="rating must be > 0"):
+        Unit("c", plant, "b", rating=0.0)
+
+
 def test_identified_equations_stand_in_for_the_plant():
     """The target as explicit model equations (here: the plant's exact ones, over the engine's
     monomials) gives the same microgrid: operating point, modes, stability boundary."""

@@ -75,15 +75,20 @@ class Unit:
     """An inverter at bus ``bus``: ``system`` (``vector_field``, ``jacobian(x, u, wrt)``, state
     names in ``state_names``, inputs ``ug, theta_g``), its angle state ``angle`` (the inverter
     frame's angle in the network frame) and its grid-side current pair ``current`` (injected into
-    the bus)."""
+    the bus); ``rating``, its rating in units of the network's base power (its own per-unit
+    currents times ``rating`` are the network's; voltages share one base)."""
 
     name: str
     system: object
     bus: str
     angle: str = "delta"
     current: tuple = ("ig_d", "ig_q")
+    rating: float = 1.0
 
     def __post_init__(self):
+        if not (math.isfinite(self.rating) and self.rating > 0):
+            raise MicrogridError(f"unit {self.name!r}: rating must be > 0 (of the network's base power), "
+                                 f"got {self.rating}")
         names = list(getattr(self.system, "state_names", ()))
         missing = [s for s in (self.angle, *self.current) if s not in names]
         if missing:
@@ -223,7 +228,7 @@ class Microgrid:
         own = self.unit_state(x, k)
         delta = own[unit.i_angle]
         i_d, i_q = own[unit.i_current[0]], own[unit.i_current[1]]
-        c, s = math.cos(delta), math.sin(delta)
+        c, s = unit.rating * math.cos(delta), unit.rating * math.sin(delta)
         current = np.array([i_d * c - i_q * s, i_d * s + i_q * c])
         # columns: ∂/∂angle, ∂/∂i_d, ∂/∂i_q
         slope = np.array([[-i_d * s - i_q * c, c, -s], [i_d * c - i_q * s, s, c]])
@@ -503,7 +508,7 @@ class Microgrid:
             slot = self.unit_slots[k]
             delta = x[..., slot[unit.i_angle]] if slot[unit.i_angle] >= 0 else np.zeros(x.shape[:-1])
             i_d, i_q = x[..., slot[unit.i_current[0]]], x[..., slot[unit.i_current[1]]]
-            c, s = np.cos(delta), np.sin(delta)
+            c, s = unit.rating * np.cos(delta), unit.rating * np.sin(delta)
             out.append(np.stack([i_d * c - i_q * s, i_d * s + i_q * c], axis=-1))
         return np.stack(out, axis=-2)
 
@@ -521,7 +526,7 @@ class Microgrid:
 # -------------------------------------------------------------------- configuration and reports
 _BUS_KEYS = {"name", "capacitance", "load"}
 _LINE_KEYS = {"name", "from", "to", "r", "x"}
-_UNIT_KEYS = {"name", "bus", "model", "plant", "angle", "current"}
+_UNIT_KEYS = {"name", "bus", "model", "plant", "angle", "current", "rating"}
 _TOP_KEYS = {"base_hz", "grid", "buses", "lines", "units"}
 
 
@@ -561,7 +566,8 @@ def microgrid_from_config(config: dict, base_dir=".", source: str = "microgrid",
         buses:  [{name: b1, capacitance: 0.02}, {name: pcc, capacitance: 0.05, load: {r: 0.9, x: 0.4358}}]
         lines:  [{from: b1, to: pcc, r: 0.01, x: 0.05}, {from: pcc, to: grid, r: 0.02, x: 0.2}]
         units:  [{name: target, model: target.json, bus: b1},     # an identified explicit model
-                 {name: aux, plant: {KpV: 2.0, KiV: 4.0}, bus: b1}]  # the virtual HIL's inverter, these parameters
+                 {name: aux, plant: {KpV: 2.0, KiV: 4.0}, bus: b1, rating: 0.5}]  # the virtual HIL's inverter,
+                                                              # these parameters, half the base power
 
     ``model`` paths are relative to ``base_dir``; ``loaded``, a dict, keeps the models read
     (path -> model) for the next call (a parameter sweep rebuilds the microgrid at every value).
@@ -629,7 +635,8 @@ def microgrid_from_config(config: dict, base_dir=".", source: str = "microgrid",
         if not isinstance(current, (list, tuple)) or len(current) != 2:
             raise MicrogridError(f"{where}.current: two state names (d, q), got {current!r}")
         units.append(Unit(str(entry.get("name", f"unit{k}")), system, str(entry["bus"]),
-                          angle=str(entry.get("angle", "delta")), current=tuple(map(str, current))))
+                          angle=str(entry.get("angle", "delta")), current=tuple(map(str, current)),
+                          rating=_number(entry.get("rating", 1.0), f"{where}.rating", positive=True)))
     base_hz = _number(config.get("base_hz", DEFAULT_BASE_HZ), f"{source}: base_hz", positive=True)
     try:
         return Microgrid(units, buses, lines, base_hz=base_hz), inputs
