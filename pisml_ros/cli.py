@@ -393,6 +393,12 @@ def cmd_microgrid(args) -> int:
           f"{microgrid.n_states} states; {where}: "
           f"{'STABLE' if report['stable'] else 'UNSTABLE'} (max real part {report['max_real']:.4g} 1/s, "
           f"min damping {report['min_damping']:.3f})")
+    uncertainty = report.get("uncertainty")
+    if uncertainty:
+        low, high = uncertainty["max_real_interval"]
+        print(f"  the identified units' data pin the largest real part to {low:.4g} .. {high:.4g} 1/s (2 std, noise "
+              f"alone): " + ("stability undetermined by the data" if uncertainty["verdict"] == "undetermined"
+                             else f"{uncertainty['verdict']} either way"))
     for unit in report["units"]:
         line = (f"  unit {unit['name']} ({unit['kind']}) at bus {unit['bus']}: sees {unit['ug']:.4f} p.u., "
                 f"{unit['theta_g']:.4f} rad; delivers P {unit['p']:.4f}, Q {unit['q']:.4f} p.u.")

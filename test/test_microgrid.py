@@ -186,6 +186,26 @@ def test_islanded_microgrid_shares_the_load_by_droop():
     assert np.abs(np.sort_complex(eigs) - other).max() < 1e-5 * np.abs(eigs).max()
 
 
+def test_the_identified_units_covariance_carries_to_the_microgrid_verdict():
+    """One identified unit on a stiff bus: the microgrid's largest real part is the unit's own, and
+    so is its standard deviation (analysis.uncertainty, the single-model computation)."""
+    from pisml_ros.analysis.microgrid import max_real_std
+    from pisml_ros.analysis.uncertainty import covariance_metadata, max_real_std as model_std
+
+    model = plant_as_explicit_model(InverterPlant())
+    support = np.flatnonzero(model.coefficients.ravel())
+    cov = np.diag((0.002 * model.coefficients.ravel()[support]) ** 2)
+    model.metadata["coefficient_covariance"] = covariance_metadata(model.coefficients.shape, support, cov)
+    # (the line resistive enough that the network's own fast modes are damped well below the unit's slowest)
+    grid = Microgrid([Unit("inv", model, "pcc")], [Bus("pcc", capacitance=1e-5)], [Line("pcc", "grid", 1e-5, 1e-5)])
+    x = grid.equilibrium(1.0, 0.0)
+    alone = model_std(model, model.equilibrium(1.0, 0.0), np.array([1.0, 0.0]))
+    assert alone > 0 and max_real_std(grid, x) == pytest.approx(alone, rel=1e-3)
+    report = microgrid_report(three_bus(model), 1.0, 0.0)
+    assert report["uncertainty"]["max_real_std"] > 0 and report["uncertainty"]["verdict"] in ("stable", "undetermined")
+    assert "uncertainty" not in microgrid_report(three_bus(InverterPlant()), 1.0, 0.0)  # nothing identified
+
+
 def test_descriptions_that_cannot_be_assembled_say_what_is_wrong():
     plant = InverterPlant()
     with pytest.raises(MicrogridError, match="bus 'nowhere'"):

@@ -301,6 +301,10 @@ class AnalyserNode(Node):
         report.update(model_id=model_id, unit=unit)
         self.microgrid_pub.publish(String(data=json.dumps(report, default=_json_float)))
         verdict = "stable" if report["stable"] else "unstable"
+        uncertainty = report.get("uncertainty")
+        if uncertainty and uncertainty["verdict"] == "undetermined":
+            low, high = uncertainty["max_real_interval"]
+            verdict += f" (not decided by the data: max real part {low:.3g} .. {high:.3g} 1/s, 2 std)"
         self.get_logger().info(f"{model_id} as microgrid unit {unit!r}: {verdict}, max real part "
                                f"{report['max_real']:.4g} 1/s")
         return status(name, DiagnosticStatus.OK if report["stable"] else DiagnosticStatus.ERROR,
