@@ -437,8 +437,8 @@ class Microgrid:
 
         Followed from the network without impedance (:meth:`initial_guess`, exact there) as the
         lines' impedances and the loads grow to their values (:meth:`scaled`, levels from
-        ``start_level`` to 1, halved where a step fails; scipy's hybrid Powell with the exact
-        Jacobian at each): the operating point connected to each unit's own, not another root
+        ``start_level`` to 1 in steps of up to 3x, shorter where one fails; scipy's hybrid Powell
+        with the exact Jacobian at each): the operating point connected to each unit's own, not another root
         of the network equations (a start from the units' equilibria on a heavily loaded network
         found one with every angle near π). With ``x0``, one solve from there.
         """
