@@ -201,9 +201,10 @@ def main(argv=None) -> int:
             row.update(assess(config, model, truth))
             rows.append(row)
             one = row["grid"]["1.0"]
+            step = row.get("transient_error", row.get("transient_error_text"))
             print(f"{method} {row['data']} recording {seed}: P {cell(one.get('p'), 4)} Q {cell(one.get('q'), 4)} "
                   f"max Re {cell(one.get('max_real'), 4)} W {cell(one.get('wasserstein'))} "
-                  f"boundary {row['boundaries']} load step {row.get('transient_error', row.get('transient_error_text'))} "
+                  f"boundary {row['boundaries']} load step {step} "
                   f"({row['fit_s']} s fit){' ' + one['error'] if 'error' in one else ''}",
                   flush=True)
     figure(truth, rows, BENCH / "figures" / "microgrid_load_step.png")

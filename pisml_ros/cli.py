@@ -358,7 +358,8 @@ def cmd_microgrid(args) -> int:
     for item in args.model or []:
         name, sep, model_path = item.partition("=")
         units = config.get("units") if isinstance(config, dict) else None
-        matches = [k for k, entry in enumerate(units or []) if isinstance(entry, dict) and str(entry.get("name")) == name]
+        matches = [k for k, entry in enumerate(units or [])
+                   if isinstance(entry, dict) and str(entry.get("name")) == name]
         if not sep or not model_path or not matches:
             known = [str(entry.get("name")) for entry in units or [] if isinstance(entry, dict)]
             raise UserError(f"--model {item!r}: expected UNIT=PATH with UNIT one of the configuration's units {known}")
@@ -388,7 +389,8 @@ def cmd_microgrid(args) -> int:
         return 0
     op = report["operating_point"]
     where = (f"islanded, frequency {report['frequency_pu']:.5f} p.u. (the network's frame turns with unit "
-             f"{microgrid.units[0].name})" if microgrid.islanded else f"grid source {op['ug']:g} p.u., {op['theta_g']:g} rad")
+             f"{microgrid.units[0].name})" if microgrid.islanded
+             else f"grid source {op['ug']:g} p.u., {op['theta_g']:g} rad")
     print(f"microgrid: {len(microgrid.units)} units, {len(microgrid.buses)} buses, {len(microgrid.lines)} lines, "
           f"{microgrid.n_states} states; {where}: "
           f"{'STABLE' if report['stable'] else 'UNSTABLE'} (max real part {report['max_real']:.4g} 1/s, "
@@ -563,7 +565,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("microgrid", help="assemble inverter models (identified or known) with buses, lines, loads and "
                                          "a grid source; equilibrium, modes, a parameter sweep")
-    p.add_argument("--config", required=True, metavar="FILE", help="microgrid description (YAML or JSON; README, 'Microgrid')")
+    p.add_argument("--config", required=True, metavar="FILE",
+                   help="microgrid description (YAML or JSON; README, 'Microgrid')")
     p.add_argument("--ug", type=float, help="grid source voltage (p.u.; default: the configuration's, else 1.0)")
     p.add_argument("--theta-g", type=float, help="grid source phase (rad; default: the configuration's, else 0)")
     p.add_argument("--model", action="append", metavar="UNIT=PATH",
@@ -576,7 +579,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--step", action="append", metavar="PATH=VALUE@T",
                    help="simulate from the operating point with this setting changed at T seconds, e.g. "
                         "buses.pcc.load.r=0.6@0.02 (a load step; repeatable)")
-    p.add_argument("--duration", type=float, help="simulated time (s; default: 40 ms after the last step, at least 60 ms)")
+    p.add_argument("--duration", type=float,
+                   help="simulated time (s; default: 40 ms after the last step, at least 60 ms)")
     p.add_argument("--out", help="CSV of the simulation: t, each unit's injected current (network frame), every state")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=cmd_microgrid)

@@ -190,7 +190,8 @@ class Microgrid:
                 start += 2
         self.line_offset = [start + 2 * k for k in range(len(self.lines))]
         self.n_states = start + 2 * len(self.lines)
-        names_out = [f"{u.name}.{s}" for u, slot in zip(self.units, slots) for s, g in zip(u.state_names, slot) if g >= 0]
+        names_out = [f"{u.name}.{s}" for u, slot in zip(self.units, slots)
+                     for s, g in zip(u.state_names, slot) if g >= 0]
         names_out += [f"{b.name}.v_{ax}" for b in self.buses for ax in "DQ"]
         names_out += [f"{b}.iload_{ax}" for b in self.load_offset for ax in "DQ"]
         names_out += [f"line{k}.i_{ax}" for k in range(len(self.lines)) for ax in "DQ"]
@@ -603,15 +604,16 @@ def microgrid_from_config(config: dict, base_dir=".", source: str = "microgrid",
         _unknown(entry, _LINE_KEYS, where)
         if "from" not in entry or "to" not in entry:
             raise MicrogridError(f"{where}: needs 'from' and 'to' (bus names, or {GRID!r} for 'to')")
-        lines.append(Line(str(entry["from"]), str(entry["to"]), _number(entry.get("r", 0.01), f"{where}.r", nonnegative=True),
+        lines.append(Line(str(entry["from"]), str(entry["to"]),
+                          _number(entry.get("r", 0.01), f"{where}.r", nonnegative=True),
                           _number(entry.get("x", 0.05), f"{where}.x", positive=True)))
     units = []
     for k, entry in enumerate(_entries(config, "units", source)):
         where = f"{source}: units[{k}]"
         _unknown(entry, _UNIT_KEYS, where)
         if ("model" in entry) == ("plant" in entry):
-            raise MicrogridError(f"{where}: give exactly one of 'model' (an explicit model JSON) or 'plant' (the virtual "
-                                 f"HIL's inverter with these parameters)")
+            raise MicrogridError(f"{where}: give exactly one of 'model' (an explicit model JSON) or 'plant' "
+                                 f"(the virtual HIL's inverter with these parameters)")
         if "bus" not in entry:
             raise MicrogridError(f"{where}: needs 'bus'")
         if "model" in entry:
@@ -661,7 +663,8 @@ def with_setting(config: dict, path: str, value) -> dict:
             elif key.lstrip("-").isdigit() and -len(node) <= int(key) < len(node):
                 index = int(key)
             else:
-                raise MicrogridError(f"--vary {path}: no entry {key!r} in {'.'.join(keys[:depth]) or 'the configuration'}")
+                where = '.'.join(keys[:depth]) or 'the configuration'
+                raise MicrogridError(f"--vary {path}: no entry {key!r} in {where}")
             if last:
                 node[index] = value
             node = node[index]
@@ -720,7 +723,8 @@ def parameter_sweep(config: dict, path: str, values, base_dir=".", loaded: dict 
                            "eigenvalues": [[float(z.real), float(z.imag)] for z in spectra[value]]})
         except EquilibriumNotFound as err:
             points.append({"value": float(value), "max_real": None, "error": str(err)})
-    return {"parameter": path, "points": points, "boundaries": stability_boundaries(max_real, sorted(values), xtol=1e-6)}
+    boundaries = stability_boundaries(max_real, sorted(values), xtol=1e-6)
+    return {"parameter": path, "points": points, "boundaries": boundaries}
 
 
 def max_real_std(microgrid: Microgrid, x, u=(1.0, 0.0)) -> float | None:
