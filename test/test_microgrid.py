@@ -189,8 +189,7 @@ def test_islanded_microgrid_shares_the_load_by_droop():
 def test_the_identified_units_covariance_carries_to_the_microgrid_verdict():
     """One identified unit on a stiff bus: the microgrid's largest real part is the unit's own, and
     so is its standard deviation (analysis.uncertainty, the single-model computation)."""
-    from pisml_ros.analysis.microgrid import max_real_std
-    from pisml_ros.analysis.uncertainty import covariance_metadata, max_real_std as model_std
+    from pisml_ros.analysis.uncertainty import covariance_metadata, max_real_std
 
     model = plant_as_explicit_model(InverterPlant())
     support = np.flatnonzero(model.coefficients.ravel())
@@ -199,8 +198,8 @@ def test_the_identified_units_covariance_carries_to_the_microgrid_verdict():
     # (the line resistive enough that the network's own fast modes are damped well below the unit's slowest)
     grid = Microgrid([Unit("inv", model, "pcc")], [Bus("pcc", capacitance=1e-5)], [Line("pcc", "grid", 1e-5, 1e-5)])
     x = grid.equilibrium(1.0, 0.0)
-    alone = model_std(model, model.equilibrium(1.0, 0.0), np.array([1.0, 0.0]))
-    assert alone > 0 and max_real_std(grid, x) == pytest.approx(alone, rel=1e-3)
+    alone = max_real_std(model, model.equilibrium(1.0, 0.0), np.array([1.0, 0.0]))
+    assert alone > 0 and grid.max_real_std(x) == pytest.approx(alone, rel=1e-3)
     report = microgrid_report(three_bus(model), 1.0, 0.0)
     assert report["uncertainty"]["max_real_std"] > 0 and report["uncertainty"]["verdict"] in ("stable", "undetermined")
     assert "uncertainty" not in microgrid_report(three_bus(InverterPlant()), 1.0, 0.0)  # nothing identified

@@ -513,6 +513,47 @@ class Microgrid:
             out.append(np.stack([i_d * c - i_q * s, i_d * s + i_q * c], axis=-1))
         return np.stack(out, axis=-2)
 
+    uncertainty_basis = ("the identified units' coefficient covariances (measurement noise alone, the units "
+                         "independent), first order, the operating point held")
+
+    def max_real_std(self, x, u=(1.0, 0.0)) -> float | None:
+        """Standard deviation (1/s) of the microgrid's largest real part at state ``x`` from its
+        identified units' coefficient covariances (:mod:`~pisml_ros.analysis.uncertainty`; the
+        units independent), to first order with the operating point held, as for one model. None
+        where no unit carries a covariance or the eigenvalue is defective.
+
+        The Jacobian is affine in each coefficient at a fixed state, so its derivative is one
+        difference of two Jacobians, exact up to rounding: simpler than the chain rule through the
+        bus voltages, the frames and (islanded) the reference frequency, and cheap (one Jacobian per
+        coefficient).
+        """
+        from .uncertainty import coefficient_covariance, max_real_slope
+
+        x = np.asarray(x, dtype=float)
+        u = np.asarray(u, dtype=float)
+        stored = [(unit.system, coefficient_covariance(unit.system)) for unit in self.units]
+        stored = [(system, found) for system, found in stored if found is not None]
+        if not stored:
+            return None
+        a = self.jacobian(x, u)
+        d_re = max_real_slope(a)
+        if d_re is None:
+            return None
+        variance = 0.0
+        for system, (entries, cov) in stored:
+            coefficients = system.coefficients
+            sensitivity = np.zeros(len(entries))
+            for n, (t, j) in enumerate(entries):
+                old = coefficients[t, j]
+                step = 1e-3 * max(1.0, abs(old))
+                try:
+                    coefficients[t, j] = old + step
+                    sensitivity[n] = float(np.sum(d_re * (self.jacobian(x, u) - a))) / step
+                finally:
+                    coefficients[t, j] = old
+            variance += float(sensitivity @ cov @ sensitivity)
+        return float(np.sqrt(max(variance, 0.0)))
+
     def unit_shares(self, participation_row: np.ndarray) -> dict:
         """How much of one mode's participation (a row of
         :attr:`~pisml_ros.analysis.modal.ModalSummary.participation`) sits in each unit's states
@@ -727,56 +768,13 @@ def parameter_sweep(config: dict, path: str, values, base_dir=".", loaded: dict 
     return {"parameter": path, "points": points, "boundaries": boundaries}
 
 
-def max_real_std(microgrid: Microgrid, x, u=(1.0, 0.0)) -> float | None:
-    """Standard deviation (1/s) of the microgrid's largest real part at state ``x`` from its
-    identified units' coefficient covariances (:mod:`~pisml_ros.analysis.uncertainty`; the units
-    independent), to first order with the operating point held, as for one model. None where no
-    unit carries a covariance or the eigenvalue is defective.
-
-    The microgrid's Jacobian is affine in each coefficient at a fixed state, so its derivative is
-    one difference of two Jacobians, exact up to rounding: cheaper to write than the chain rule
-    through the bus voltages, the frames and (islanded) the reference frequency.
-    """
-    import scipy.linalg
-
-    from .uncertainty import coefficient_covariance
-
-    x = np.asarray(x, dtype=float)
-    u = np.asarray(u, dtype=float)
-    stored = [(unit.system, coefficient_covariance(unit.system)) for unit in microgrid.units]
-    stored = [(system, found) for system, found in stored if found is not None]
-    if not stored:
-        return None
-    a = microgrid.jacobian(x, u)
-    lam, left, right = scipy.linalg.eig(a, left=True, right=True)
-    i = int(np.argmax(lam.real))
-    overlap = left[:, i].conj() @ right[:, i]
-    if abs(overlap) < 1e-8:
-        return None
-    d_re = np.real(np.outer(left[:, i].conj(), right[:, i]) / overlap)  # ∂Re λ / ∂A
-    variance = 0.0
-    for system, (entries, cov) in stored:
-        coefficients = system.coefficients
-        sensitivity = np.zeros(len(entries))
-        for n, (t, j) in enumerate(entries):
-            old = coefficients[t, j]
-            step = 1e-3 * max(1.0, abs(old))
-            try:
-                coefficients[t, j] = old + step
-                sensitivity[n] = float(np.sum(d_re * (microgrid.jacobian(x, u) - a))) / step
-            finally:
-                coefficients[t, j] = old
-        variance += float(sensitivity @ cov @ sensitivity)
-    return float(np.sqrt(max(variance, 0.0)))
-
-
 def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0, modes: int = 3) -> dict:
     """The microgrid's operating point and modes
     (:func:`~pisml_ros.analysis.operating_point.operating_point_report`), plus per unit the bus
     voltage it sees and whether an identified unit was fitted on such voltages, the ``modes``
     least-damped modes with each unit's share in them, and where identified units carry their
     coefficients' covariance, how far their data pin the microgrid's verdict (``uncertainty``, as
-    ``pisml analyse`` has it for one model; :func:`max_real_std`). JSON-ready."""
+    ``pisml analyse`` has it for one model; :meth:`Microgrid.max_real_std`). JSON-ready."""
     from .operating_point import coverage_note, data_coverage, operating_point_report
 
     report = operating_point_report(microgrid, ug, theta_g)
@@ -799,16 +797,6 @@ def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0
                 entry["note"] = note
         units.append(entry)
     report["units"] = units
-    std = max_real_std(microgrid, x, (ug, theta_g))
-    if std is not None:
-        from .uncertainty import VERDICT_SIGMAS, stability_verdict
-
-        report["uncertainty"] = {
-            "max_real_std": std,
-            "max_real_interval": [report["max_real"] - VERDICT_SIGMAS * std, report["max_real"] + VERDICT_SIGMAS * std],
-            "verdict": stability_verdict(report["max_real"], std),
-            "basis": "the identified units' coefficient covariance (measurement noise alone), first order, the "
-                     "operating point held"}
     report["islanded"] = microgrid.islanded
     report["frequency_pu"] = microgrid.frequency(x, (ug, theta_g))
     a = microgrid.jacobian(x, [ug, theta_g])

@@ -48,16 +48,20 @@ def verdict_uncertainty(system, x, inputs, max_real: float) -> dict | None:
     baselines, models saved before it was recorded)."""
     from .uncertainty import VERDICT_SIGMAS, coefficient_covariance, max_real_std, stability_verdict
 
-    stored = coefficient_covariance(system)
-    if stored is None:
-        return None
-    std = max_real_std(system, x, np.asarray(inputs, dtype=float), stored)
+    own = getattr(system, "max_real_std", None)
+    if callable(own):  # an assembled system (a microgrid) carries its identified parts' covariances
+        std, basis = own(x, np.asarray(inputs, dtype=float)), getattr(system, "uncertainty_basis", "")
+    else:
+        stored = coefficient_covariance(system)
+        if stored is None:
+            return None
+        std = max_real_std(system, x, np.asarray(inputs, dtype=float), stored)
+        basis = system.metadata["coefficient_covariance"].get("basis", "")
     if std is None:
         return None
     return {"max_real_std": std,
             "max_real_interval": [max_real - VERDICT_SIGMAS * std, max_real + VERDICT_SIGMAS * std],
-            "verdict": stability_verdict(max_real, std),
-            "basis": system.metadata["coefficient_covariance"].get("basis", "")}
+            "verdict": stability_verdict(max_real, std), "basis": basis}
 
 
 def identified_input_range(system) -> dict | None:

@@ -66,17 +66,24 @@ def max_real_std(model, x, u, stored=None) -> float | None:
     entries, cov = stored
     n = len(model.state_names)
     grad = np.asarray(model.term_gradients(x, u))[:, :n]
-    a = np.asarray(model.coefficients).T @ grad
+    d_re = max_real_slope(np.asarray(model.coefficients).T @ grad)
+    if d_re is None:
+        return None
+    # A[j, k] = Σ_t c[t, j]·grad[t, k]: ∂A[j, :] / ∂c[t, j] = grad[t, :]
+    sensitivity = np.einsum("ik,ik->i", d_re[entries[:, 1]], grad[entries[:, 0]])
+    variance = float(sensitivity @ cov @ sensitivity)
+    return float(np.sqrt(max(variance, 0.0)))
+
+
+def max_real_slope(a: np.ndarray) -> np.ndarray | None:
+    """∂Re λ / ∂A of the eigenvalue of ``a`` with the largest real part (first-order perturbation,
+    dλ = uᴴ dA v / uᴴv), or None where that eigenvalue is defective."""
     lam, left, right = scipy.linalg.eig(a, left=True, right=True)
     i = int(np.argmax(lam.real))
     overlap = left[:, i].conj() @ right[:, i]
     if abs(overlap) < 1e-8:
         return None
-    d_re = np.real(np.outer(left[:, i].conj(), right[:, i]) / overlap)  # ∂Re λ / ∂A
-    # A[j, k] = Σ_t c[t, j]·grad[t, k]: ∂A[j, :] / ∂c[t, j] = grad[t, :]
-    sensitivity = np.einsum("ik,ik->i", d_re[entries[:, 1]], grad[entries[:, 0]])
-    variance = float(sensitivity @ cov @ sensitivity)
-    return float(np.sqrt(max(variance, 0.0)))
+    return np.real(np.outer(left[:, i].conj(), right[:, i]) / overlap)
 
 
 def stability_verdict(max_real: float, std: float | None, sigmas: float = VERDICT_SIGMAS) -> str:
