@@ -12,10 +12,13 @@ and method (PISML and the Mod-SINDy baseline) it prints and writes:
 - the stability boundary in the droop gain mp of auxiliary inverter 1 (the truth: 0.1326), the
   paper's "tuning the known units to accommodate the black box";
 - a load step (the load bus's resistance 0.9 -> 0.6 p.u.): each unit's injected current against
-  the true microgrid's, the paper's large-signal check of the 3-bus system.
+  the true microgrid's, the paper's large-signal check of the 3-bus system;
+- the same microgrid islanded (its line to the grid removed): frequency, the target's power and
+  voltage, the largest real part and the boundary in aux1's mp.
 
     .venv/bin/python bench/microgrid_bench.py [--seeds 0-9] [--noise 40] [--clean] \
-        [--methods pisml,mod-sindy] [--out bench/microgrid_results.json] [--markdown bench/MICROGRID_RESULTS.md]
+        [--methods pisml,mod-sindy] [--out bench/microgrid_results.json] [--markdown bench/MICROGRID_RESULTS.md] \
+        [--figure bench/figures/microgrid_load_step.png]
 """
 from __future__ import annotations
 
@@ -83,6 +86,17 @@ def assess(config: dict, target, reference: dict | None = None) -> dict:
                     for k, unit in enumerate(before.units)}
     except Exception as err:  # no operating point, or a run that blew up: recorded
         row["transient_error_text"] = f"{type(err).__name__}: {err}"
+    # islanded: the same microgrid without its line to the grid (the droops share the load)
+    islanded = dict(config, lines=[line for line in config["lines"] if line["to"] != "grid"])
+    try:
+        report = microgrid_report(build(islanded))
+        row["islanded"] = {"frequency": report["frequency_pu"], "max_real": report["max_real"],
+                           "p": report["units"][0]["p"], "q": report["units"][0]["q"],
+                           "ug_seen": report["units"][0]["ug"], "note": report["units"][0].get("note", ""),
+                           "boundaries": parameter_sweep(islanded, VARY, VARY_GRID, CONFIG.parent,
+                                                         loaded=loaded)["boundaries"]}
+    except Exception as err:  # no operating point: recorded
+        row["islanded"] = {"error": f"{type(err).__name__}: {err}"}
     return row
 
 
@@ -127,6 +141,24 @@ def write_markdown(results: dict, path: Path) -> None:
     for row in results["rows"]:
         name = f"{row['method']}, recording {row['seed']}, {row['data']} ({row['coefficients']} coefficients)"
         lines.append(row_text(name, row))
+    lines += ["", "Islanded: the same microgrid without its line to the grid (the droops share the load; the "
+              "network's frame turns with the target's). Frequency (p.u.), what the target delivers and the voltage "
+              "it sees, the largest real part, and the boundary in aux1's mp.", "",
+              "| target | frequency | P | Q | target's bus voltage | max Re | boundary in aux1 mp |",
+              "|---|---|---|---|---|---|---|"]
+
+    def islanded_text(name, row):
+        entry = row.get("islanded") or {}
+        if "error" in entry or not entry:
+            return f"| {name} | no operating point | | | | | |"
+        bounds = ", ".join(f"{b:.4g}" for b in entry["boundaries"]) or "none"
+        note = " (outside its records)" if entry.get("note") else ""
+        return (f"| {name} | {entry['frequency']:.5f} | {cell(entry['p'], 4)} | {cell(entry['q'], 4)} | "
+                f"{entry['ug_seen']:.4f}{note} | {cell(entry['max_real'], 4)} | {bounds} |")
+
+    lines.append(islanded_text("true plant", truth))
+    for row in results["rows"]:
+        lines.append(islanded_text(f"{row['method']}, recording {row['seed']}, {row['data']}", row))
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -176,6 +208,7 @@ def main(argv=None) -> int:
     parser.add_argument("--methods", default="pisml,mod-sindy")
     parser.add_argument("--out", default=str(BENCH / "microgrid_results.json"))
     parser.add_argument("--markdown", default=str(BENCH / "MICROGRID_RESULTS.md"))
+    parser.add_argument("--figure", default=str(BENCH / "figures" / "microgrid_load_step.png"))
     args = parser.parse_args(argv)
     seeds = []
     for part in (p.strip() for p in args.seeds.split(",") if p.strip()):
@@ -207,7 +240,7 @@ def main(argv=None) -> int:
                   f"boundary {row['boundaries']} load step {step} "
                   f"({row['fit_s']} s fit){' ' + one['error'] if 'error' in one else ''}",
                   flush=True)
-    figure(truth, rows, BENCH / "figures" / "microgrid_load_step.png")
+    figure(truth, rows, Path(args.figure))
     for row in [truth, *rows]:  # the waveforms are in the figure; the results file keeps the errors
         row.pop("transient", None)
     for row in rows:  # and the truth's spectra, the models' distances to them (W)
