@@ -29,7 +29,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 BENCH = Path(__file__).resolve().parent
 sys.path[:0] = [str(BENCH), str(BENCH.parent)]
@@ -199,6 +198,8 @@ def figure(truth: dict, rows: list, path: Path) -> None:
 def main(argv=None) -> int:
     from bench import datasets, machine
 
+    from pisml_ros.analysis.microgrid import read_microgrid_config
+
     from pisml_ros.ident import IdentConfig, make_estimator
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -215,7 +216,7 @@ def main(argv=None) -> int:
         low, _, high = part.partition("-")
         seeds += list(range(int(low), int(high or low) + 1))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    config = yaml.safe_load(CONFIG.read_text())["microgrid"]
+    config = read_microgrid_config(CONFIG)
     started = time.monotonic()
     truth = assess(config, None)
     print(f"truth: max Re at 1.0 {truth['grid']['1.0']['max_real']:.4g} 1/s, boundary in {VARY} {truth['boundaries']}",

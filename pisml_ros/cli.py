@@ -339,21 +339,16 @@ def _microgrid_transient(args, config, build, microgrid, inputs) -> dict:
 
 
 def cmd_microgrid(args) -> int:
-    import yaml
-
-    from .analysis.microgrid import MicrogridError, microgrid_from_config, microgrid_report, parameter_sweep
+    from .analysis.microgrid import (MicrogridError, microgrid_from_config, microgrid_report, parameter_sweep,
+                                     read_microgrid_config)
     from .model import EquilibriumNotFound
     from .plant import EquilibriumError
 
     path = Path(args.config)
     try:
-        config = yaml.safe_load(path.read_text())
-    except OSError as err:
-        raise UserError(f"--config {path}: {err.strerror or err}") from None
-    except yaml.YAMLError as err:
-        raise UserError(f"--config {path}: not YAML or JSON: {err}") from None
-    if isinstance(config, dict) and "microgrid" in config:
-        config = config["microgrid"]
+        config = read_microgrid_config(path)
+    except MicrogridError as err:
+        raise UserError(f"--config {err}") from None
     source = str(path)
     if args.ug is not None or args.theta_g is not None:
         grid = dict(config.get("grid") or {}) if isinstance(config, dict) else {}

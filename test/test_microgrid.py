@@ -4,10 +4,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from pisml_ros.analysis.microgrid import (Bus, Line, Microgrid, MicrogridError, Unit, microgrid_from_config,
-                                          microgrid_report, simulate_stages, with_setting)
+                                          microgrid_report, read_microgrid_config, simulate_stages, with_setting)
 from pisml_ros.ident.library import extended_library, monomial_basis, physics_library
 from pisml_ros.ident.roles import SignalRoles
 from pisml_ros.model import ExplicitModel
@@ -213,7 +212,7 @@ def test_descriptions_that_cannot_be_assembled_say_what_is_wrong():
         Microgrid([Unit("a", plant, "b")], [Bus("b", capacitance=0.0)], [Line("b", "grid")])
     with pytest.raises(MicrogridError, match=r"state\(s\) \['i_out'\]"):
         Unit("a", plant, "b", current=("ig_d", "i_out"))
-    config = yaml.safe_load(CONFIG.read_text())["microgrid"]
+    config = read_microgrid_config(CONFIG)
     broken = with_setting(config, "lines.1.x", -0.1)
     with pytest.raises(MicrogridError, match=r"lines\[1\]\.x: must be > 0"):
         microgrid_from_config(broken, CONFIG.parent, source="cfg")
@@ -226,7 +225,7 @@ def test_descriptions_that_cannot_be_assembled_say_what_is_wrong():
 
 
 def test_setting_by_name_or_index():
-    config = yaml.safe_load(CONFIG.read_text())["microgrid"]
+    config = read_microgrid_config(CONFIG)
     changed = with_setting(with_setting(config, "units.aux2.plant.KpV", 3.0), "lines.3.x", 0.4)
     assert changed["units"][2]["plant"]["KpV"] == 3.0 and changed["lines"][3]["x"] == 0.4
     assert config["units"][2]["plant"]["KpV"] == 1.4  # a copy

@@ -223,17 +223,15 @@ class Microgrid:
         local[unit.i_angle] -= inputs[1]
         return local, np.array([inputs[0], 0.0])
 
-    def _unit_current(self, x, k):
-        """The current unit ``k`` injects, in the network frame, and its derivative in (angle, i_d, i_q)."""
+    def _current_slope(self, x, k):
+        """The derivative of the current unit ``k`` injects (:meth:`injected_currents`) in its
+        (angle, i_d, i_q), a 2 × 3 matrix."""
         unit = self.units[k]
         own = self.unit_state(x, k)
         delta = own[unit.i_angle]
         i_d, i_q = own[unit.i_current[0]], own[unit.i_current[1]]
         c, s = unit.rating * math.cos(delta), unit.rating * math.sin(delta)
-        current = np.array([i_d * c - i_q * s, i_d * s + i_q * c])
-        # columns: ∂/∂angle, ∂/∂i_d, ∂/∂i_q
-        slope = np.array([[-i_d * s - i_q * c, c, -s], [i_d * c - i_q * s, s, c]])
-        return current, slope
+        return np.array([[-i_d * s - i_q * c, c, -s], [i_d * c - i_q * s, s, c]])
 
     @staticmethod
     def _rotate(value, w):
@@ -259,10 +257,11 @@ class Microgrid:
         out = np.zeros(self.n_states)
         injected = {b.name: np.zeros(2) for b in self.buses}
         rates = []
+        for unit, current in zip(self.units, self.injected_currents(x)):
+            injected[unit.bus] += current
         for k, unit in enumerate(self.units):
             local, inputs = self._local(x, k)
             rates.append(np.asarray(unit.system.vector_field(local, inputs), dtype=float))
-            injected[unit.bus] += self._unit_current(x, k)[0]
         # islanded, the frame turns with the first unit: every angle's rate is relative to its rate
         reference = rates[0][self.units[0].i_angle] if self.islanded else 0.0
         w = self.wg + reference / self.wb
@@ -353,7 +352,7 @@ class Microgrid:
             free = slot >= 0
             a[slot[free]] += full[free]
             # its current into the bus
-            _, slope = self._unit_current(x, k)
+            slope = self._current_slope(x, k)
             cols = slot[[unit.i_angle, *unit.i_current]]
             keep = cols >= 0
             ov = self.v_offset[unit.bus]
@@ -599,6 +598,21 @@ def _unknown(entry: dict, allowed: set, where: str):
         raise MicrogridError(f"{where}: unknown key(s) {extra}; allowed: {sorted(allowed)}")
 
 
+def read_microgrid_config(path) -> dict:
+    """The microgrid description in a YAML or JSON file (its ``microgrid:`` section, or the whole
+    file), for :func:`microgrid_from_config`; a file that cannot be read or parsed raises
+    :class:`MicrogridError` naming it."""
+    import yaml
+
+    try:
+        config = yaml.safe_load(Path(path).read_text())
+    except OSError as err:
+        raise MicrogridError(f"{path}: {err.strerror or err}") from None
+    except yaml.YAMLError as err:
+        raise MicrogridError(f"{path}: not YAML or JSON: {err}") from None
+    return config["microgrid"] if isinstance(config, dict) and "microgrid" in config else config
+
+
 def microgrid_from_config(config: dict, base_dir=".", source: str = "microgrid", loaded: dict | None = None) -> tuple:
     """A :class:`Microgrid` and its grid source's operating point from a configuration mapping
     (the ``microgrid:`` section of a YAML or JSON file; README, "Microgrid")::
@@ -780,9 +794,10 @@ def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0
     report = operating_point_report(microgrid, ug, theta_g)
     x = np.array([report["operating_point"]["state"][name] for name in microgrid.state_names])
     units = []
+    currents = microgrid.injected_currents(x)
     for k, unit in enumerate(microgrid.units):
         seen = microgrid._unit_inputs(x, unit)
-        current, _ = microgrid._unit_current(x, k)
+        current = currents[k]
         o = microgrid.v_offset[unit.bus]
         v = x[o:o + 2]
         entry = {"name": unit.name, "bus": unit.bus, "ug": float(seen[0]), "theta_g": float(seen[1]),

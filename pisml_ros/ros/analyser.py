@@ -127,15 +127,12 @@ class AnalyserNode(Node):
         node at start-up with the file and entry named (microgrid_from_config's checks)."""
         if not path:
             return None
-        import yaml
-
-        from ..analysis.microgrid import microgrid_from_config
+        from ..analysis.microgrid import MicrogridError, microgrid_from_config, read_microgrid_config
 
         try:
-            config = yaml.safe_load(Path(path).read_text())
-        except (OSError, yaml.YAMLError) as err:
-            raise ValueError(f"parameter microgrid_config: {path}: {getattr(err, 'strerror', None) or err}") from None
-        config = config.get("microgrid", config) if isinstance(config, dict) else config
+            config = read_microgrid_config(path)
+        except MicrogridError as err:
+            raise ValueError(f"parameter microgrid_config: {err}") from None
         microgrid_from_config(config, Path(path).parent, source=path)  # checked now, not at the first model
         names = [str(entry.get("name")) for entry in config["units"]]
         if unit not in names:

@@ -338,12 +338,11 @@ def _microgrid_part(out: Path, final, grid: dict, config_path: Path, say) -> Non
     """The analyser's report on the identified inverter inside the microgrid of ``config_path``,
     beside the same microgrid around the plant, and the boundary in an auxiliary unit's droop
     gain for both (``microgrid.json``)."""
-    import yaml
-
-    from ..analysis.microgrid import microgrid_from_config, microgrid_report, parameter_sweep, with_unit_model
+    from ..analysis.microgrid import (microgrid_from_config, microgrid_report, parameter_sweep, read_microgrid_config,
+                                      with_unit_model)
     from .conversions import model_from_message
 
-    config = yaml.safe_load(config_path.read_text())["microgrid"]
+    config = read_microgrid_config(config_path)
     with_model, loaded = with_unit_model(config, str(grid.get("unit", "target")), model_from_message(final),
                                          config_path.parent)
     path, values = MICROGRID_VARY
