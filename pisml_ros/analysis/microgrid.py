@@ -37,7 +37,6 @@ from typing import Sequence
 import numpy as np
 
 from ..equilibrium import EquilibriumNotFound, root
-from .modal import modal_summary
 
 GRID = "grid"
 #: the virtual HIL's base angular frequency (2π·60 rad/s, ``pisml_ros.plant.parameters.OMEGA_BASE``)
@@ -789,10 +788,9 @@ def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0
     least-damped modes with each unit's share in them, and where identified units carry their
     coefficients' covariance, how far their data pin the microgrid's verdict (``uncertainty``, as
     ``pisml analyse`` has it for one model; :meth:`Microgrid.max_real_std`). JSON-ready."""
-    from .operating_point import coverage_note, data_coverage, operating_point_report
+    from .operating_point import analyse_operating_point, coverage_note, data_coverage
 
-    report = operating_point_report(microgrid, ug, theta_g)
-    x = np.array([report["operating_point"]["state"][name] for name in microgrid.state_names])
+    report, x, summary = analyse_operating_point(microgrid, ug, theta_g)
     units = []
     currents = microgrid.injected_currents(x)
     for k, unit in enumerate(microgrid.units):
@@ -814,8 +812,6 @@ def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0
     report["units"] = units
     report["islanded"] = microgrid.islanded
     report["frequency_pu"] = microgrid.frequency(x, (ug, theta_g))
-    a = microgrid.jacobian(x, [ug, theta_g])
-    summary = modal_summary(a, microgrid.state_names)
     report["weakest_modes"] = [
         {"eigenvalue": [float(summary.eigenvalues[k].real), float(summary.eigenvalues[k].imag)],
          "damping": float(summary.damping[k]), "frequency_hz": float(summary.frequencies_hz[k]),

@@ -24,6 +24,22 @@ def operating_point_report(system, ug: float, theta_g: float = 0.0) -> dict:
         ``"data_coverage"`` (:func:`data_coverage`) and ``"uncertainty"`` (:func:`verdict_uncertainty`)
         where the system carries them (identified models).
     """
+    return analyse_operating_point(system, ug, theta_g)[0]
+
+
+def analyse_operating_point(system, ug: float, theta_g: float = 0.0) -> tuple:
+    """:func:`operating_point_report` with what it computed on the way, for callers that build
+    on it (the microgrid's report) without solving the equilibrium and the eigenproblem again.
+
+    Returns
+    -------
+    report : dict
+        As :func:`operating_point_report`.
+    x : ndarray
+        The equilibrium.
+    summary : ModalSummary
+        The modal summary of the Jacobian there (participation factors included).
+    """
     x = system.equilibrium(ug, theta_g)
     a = system.jacobian(x, np.array([ug, theta_g]))
     names = tuple(system.state_names) + tuple(getattr(system, "hidden_state_names", ()))
@@ -37,7 +53,7 @@ def operating_point_report(system, ug: float, theta_g: float = 0.0) -> dict:
     uncertainty = verdict_uncertainty(system, x, (ug, theta_g), report["max_real"])
     if uncertainty is not None:
         report["uncertainty"] = uncertainty
-    return report
+    return report, x, summary
 
 
 def verdict_uncertainty(system, x, inputs, max_real: float) -> dict | None:
