@@ -14,11 +14,14 @@ and method (PISML and the Mod-SINDy baseline) it prints and writes:
 - a load step (the load bus's resistance 0.9 -> 0.6 p.u.): each unit's injected current against
   the true microgrid's, the paper's large-signal check of the 3-bus system;
 - the same microgrid islanded (its line to the grid removed): frequency, the target's power and
-  voltage, the largest real part and the boundary in aux1's mp.
+  voltage, the largest real part and the boundary in aux1's mp;
+- grid strength: the target alone behind a line to the grid (``config/weak_grid.yaml``), the
+  largest real part as the line's reactance grows (short-circuit ratio from 100 to 0.67) at 1.0 and
+  1.2 p.u., the boundary in x, and where the model's verdict is not the plant's.
 
     .venv/bin/python bench/microgrid_bench.py [--seeds 0-9] [--noise 40] [--clean] \
         [--methods pisml,mod-sindy] [--out bench/microgrid_results.json] [--markdown bench/MICROGRID_RESULTS.md] \
-        [--figure bench/figures/microgrid_load_step.png]
+        [--figure bench/figures/microgrid_load_step.png] [--strength-figure bench/figures/microgrid_grid_strength.png]
 """
 from __future__ import annotations
 
@@ -38,6 +41,11 @@ GRID_VOLTAGES = (0.8, 1.0, 1.2)
 VARY = "units.aux1.plant.mp"
 VARY_GRID = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3)
 STEP = ("buses.pcc.load.r", 0.6, 0.02, 0.06)  # the load bus's resistance 0.9 -> 0.6 p.u. at 20 ms, 60 ms in all
+# grid strength: the target alone behind a line to the grid (config/weak_grid.yaml), the line's x
+# (SCR about 1/x) swept at these grid voltages
+WEAK_GRID = BENCH.parent / "config" / "weak_grid.yaml"
+WEAK_X = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.7, 1.0, 1.5)
+WEAK_UG = (1.0, 1.2)
 
 
 def assess(config: dict, target, reference: dict | None = None) -> dict:
@@ -99,6 +107,51 @@ def assess(config: dict, target, reference: dict | None = None) -> dict:
     return row
 
 
+def grid_strength(target) -> dict:
+    """The target (a system, or None for the plant) behind a line of growing reactance: the largest
+    real part at each x of WEAK_X and the stability boundaries in x, at each grid voltage of WEAK_UG."""
+    from pisml_ros.analysis.microgrid import parameter_sweep, read_microgrid_config, with_setting, with_unit_model
+
+    config, loaded = read_microgrid_config(WEAK_GRID), {}
+    if target is not None:
+        config, loaded = with_unit_model(config, "target", target, WEAK_GRID.parent)
+    out = {}
+    for ug in WEAK_UG:
+        sweep = parameter_sweep(with_setting(config, "grid.ug", ug), "lines.0.x", WEAK_X, WEAK_GRID.parent,
+                                loaded=loaded)
+        out[str(ug)] = {"max_real": [p["max_real"] for p in sweep["points"]], "boundaries": sweep["boundaries"]}
+    return out
+
+
+def wrong_verdicts(row: dict, truth: dict, ug: float) -> list:
+    """The x of WEAK_X where the model's stability verdict differs from the plant's (or it has no
+    operating point), as text."""
+    mine, theirs = row["grid_strength"][str(ug)]["max_real"], truth["grid_strength"][str(ug)]["max_real"]
+    wrong = []
+    for x, m, t in zip(WEAK_X, mine, theirs):
+        if m is None:
+            wrong.append(f"{x:g} (no eq.)")
+        elif (m > 0) != (t > 0):
+            wrong.append(f"{x:g} ({'unstable' if m > 0 else 'stable'})")
+    return wrong
+
+
+def verdicts_text(wrong: list) -> str:
+    """:func:`wrong_verdicts` for a table cell: "none", or runs of neighbouring x of WEAK_X with the
+    same wrong verdict, e.g. "0.02-1.5 unstable"."""
+    if not wrong:
+        return "none"
+    runs = []  # [first x, last x, what the model says, index of the last x in WEAK_X]
+    for item in wrong:
+        x_text, said = item.split(" ", 1)
+        k = [f"{x:g}" for x in WEAK_X].index(x_text)
+        if runs and runs[-1][2] == said and runs[-1][3] == k - 1:
+            runs[-1][1], runs[-1][3] = x_text, k
+        else:
+            runs.append([x_text, x_text, said, k])
+    return ", ".join(f"{a}{'' if a == b else '-' + b} {said.strip('()')}" for a, b, said, _ in runs)
+
+
 def cell(value, digits=3):
     return "—" if value is None else f"{value:.{digits}g}"
 
@@ -158,7 +211,64 @@ def write_markdown(results: dict, path: Path) -> None:
     lines.append(islanded_text("true plant", truth))
     for row in results["rows"]:
         lines.append(islanded_text(f"{row['method']}, recording {row['seed']}, {row['data']}", row))
+    if truth.get("grid_strength"):
+        low, high = WEAK_UG
+        lines += ["", "Grid strength: the target alone behind a line to the grid (`config/weak_grid.yaml`, bus "
+                  f"capacitance 0.01, line r 0.01), the line's x swept over {', '.join(f'{x:g}' for x in WEAK_X)} "
+                  "p.u. (short-circuit ratio about 1/x: 100 to 0.67). At "
+                  f"{high:g} p.u. the plant is unstable on a stiff grid and stable from the boundary on; at {low:g} "
+                  "p.u. it is stable at every x. Wrong verdicts: the x where the model's stability verdict is not "
+                  "the plant's (what the model says there).", "",
+                  f"| target | max Re at {low:g} p.u., x {WEAK_X[0]:g} / {WEAK_X[3]:g} / {WEAK_X[-1]:g} | wrong "
+                  f"verdicts at {low:g} p.u. | boundary in x at {high:g} p.u. | wrong verdicts at {high:g} p.u. |",
+                  "|---|---|---|---|---|"]
+
+        def strength_text(name, row):
+            entry = row.get("grid_strength")
+            if not entry:
+                return f"| {name} | failed | | | |"
+            res = " / ".join(cell(entry[str(low)]["max_real"][k], 4) for k in (0, 3, -1))
+            bounds = ", ".join(f"{b:.4g}" for b in entry[str(high)]["boundaries"]) or "none"
+            if row is truth:
+                return f"| {name} | {res} | | {bounds} | |"
+            return (f"| {name} | {res} | {verdicts_text(wrong_verdicts(row, truth, low))} | {bounds} | "
+                    f"{verdicts_text(wrong_verdicts(row, truth, high))} |")
+
+        lines.append(strength_text("true plant", truth))
+        for row in results["rows"]:
+            lines.append(strength_text(f"{row['method']}, recording {row['seed']}, {row['data']}", row))
     path.write_text("\n".join(lines) + "\n")
+
+
+def strength_figure(truth: dict, rows: list, path: Path) -> None:
+    """The largest real part against the line's x (grid strength) at each grid voltage of WEAK_UG:
+    the plant and every PISML model of noisy data."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not truth.get("grid_strength"):
+        return
+    fig, axes = plt.subplots(1, len(WEAK_UG), figsize=(11, 3.6))
+    for ax, ug in zip(np.atleast_1d(axes), WEAK_UG):
+        for row in rows:
+            if row["method"] == "pisml" and row["data"] != "clean" and row.get("grid_strength"):
+                values = [np.nan if m is None else m for m in row["grid_strength"][str(ug)]["max_real"]]
+                ax.plot(WEAK_X, values, "-", color="tab:blue", alpha=0.45, lw=1)
+        ax.plot(WEAK_X, truth["grid_strength"][str(ug)]["max_real"], "k-o", lw=2.2, ms=4, label="true plant")
+        ax.plot([], [], "-", color="tab:blue", alpha=0.6, label="PISML, one per noisy recording")
+        ax.axhline(0.0, color="r", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_yscale("symlog", linthresh=1.0)  # a model's spurious mode can sit at +50 1/s, the plant's near -1
+        ax.set_xlabel("line reactance x (p.u.; SCR about 1/x)")
+        ax.set_title(f"grid at {ug:g} p.u.")
+    np.atleast_1d(axes)[0].set_ylabel("largest real part (1/s)")
+    np.atleast_1d(axes)[0].legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def figure(truth: dict, rows: list, path: Path) -> None:
@@ -210,6 +320,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=str(BENCH / "microgrid_results.json"))
     parser.add_argument("--markdown", default=str(BENCH / "MICROGRID_RESULTS.md"))
     parser.add_argument("--figure", default=str(BENCH / "figures" / "microgrid_load_step.png"))
+    parser.add_argument("--strength-figure", default=str(BENCH / "figures" / "microgrid_grid_strength.png"))
     args = parser.parse_args(argv)
     seeds = []
     for part in (p.strip() for p in args.seeds.split(",") if p.strip()):
@@ -219,6 +330,7 @@ def main(argv=None) -> int:
     config = read_microgrid_config(CONFIG)
     started = time.monotonic()
     truth = assess(config, None)
+    truth["grid_strength"] = grid_strength(None)
     print(f"truth: max Re at 1.0 {truth['grid']['1.0']['max_real']:.4g} 1/s, boundary in {VARY} {truth['boundaries']}",
           flush=True)
     runs = [(seed, None) for seed in seeds[:1]] if args.clean else []
@@ -233,6 +345,10 @@ def main(argv=None) -> int:
             row = {"seed": seed, "data": "clean" if snr is None else f"{snr:g} dB", "method": method,
                    "coefficients": int(model.n_parameters), "fit_s": round(time.monotonic() - fit_started, 1)}
             row.update(assess(config, model, truth))
+            try:
+                row["grid_strength"] = grid_strength(model)
+            except Exception as err:  # a sweep that cannot start (no operating point at all): recorded
+                row["grid_strength_error"] = f"{type(err).__name__}: {err}"
             rows.append(row)
             one = row["grid"]["1.0"]
             step = row.get("transient_error", row.get("transient_error_text"))
@@ -241,7 +357,13 @@ def main(argv=None) -> int:
                   f"boundary {row['boundaries']} load step {step} "
                   f"({row['fit_s']} s fit){' ' + one['error'] if 'error' in one else ''}",
                   flush=True)
+            if row.get("grid_strength"):
+                print("  grid strength: wrong verdicts " + "; ".join(
+                    f"at {ug:g} p.u.: {verdicts_text(wrong_verdicts(row, truth, ug))}" for ug in WEAK_UG) +
+                    f"; boundary at {WEAK_UG[-1]:g} p.u. {row['grid_strength'][str(WEAK_UG[-1])]['boundaries']}",
+                    flush=True)
     figure(truth, rows, Path(args.figure))
+    strength_figure(truth, rows, Path(args.strength_figure))
     for row in [truth, *rows]:  # the waveforms are in the figure; the results file keeps the errors
         row.pop("transient", None)
     for row in rows:  # and the truth's spectra, the models' distances to them (W)

@@ -403,7 +403,8 @@ def cmd_microgrid(args) -> int:
     for mode in report["weakest_modes"]:
         re, im = mode["eigenvalue"]
         shares = ", ".join(f"{name} {share:.0%}" for name, share in mode["unit_shares"].items() if share >= 0.005)
-        print(f"  {re:12.4f} {im:+13.4f}j  damping {mode['damping']:.4f}, {mode['frequency_hz']:.3f} Hz: {shares}")
+        print(f"  {re:12.4f} {im:+13.4f}j  damping {mode['damping']:.4f}, {mode['frequency_hz']:.3f} Hz: {shares}"
+              + (f"\n      caution: {mode['note']}" if mode.get("note") else ""))
     if "sweep" in report:
         sweep = report["sweep"]
         print(f"  sweep of {sweep['parameter']}:")

@@ -528,6 +528,7 @@ def test_identify_simulate_analyse_cli(tmp_path, train, capsys):
     model = ExplicitModel.load(out)
     assert model.metadata["identification"]["method"] == "mod-sindy"
     assert model.metadata["training"]["records_at_rest"] == len(train)
+    assert model.metadata["training"]["sample_period"] == pytest.approx(train.dt)
     # records cut to begin 2 ms into their first transient: none at rest, and the user is told
     cut = []
     for tr in train:

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from pisml_ros.analysis.microgrid import (Bus, Line, Microgrid, MicrogridError, Unit, microgrid_from_config,
-                                          microgrid_report, read_microgrid_config, simulate_stages, with_setting)
+                                          microgrid_report, parameter_sweep, read_microgrid_config, simulate_stages,
+                                          with_setting)
 from pisml_ros.ident.library import extended_library, monomial_basis, physics_library
 from pisml_ros.ident.roles import SignalRoles
 from pisml_ros.model import ExplicitModel
@@ -88,6 +89,23 @@ def test_a_line_in_series_is_the_plant_with_a_larger_grid_inductance():
         assert np.min(np.abs(eigs - reference)) < 2e-4 * max(1.0, abs(reference))
 
 
+def test_weak_grid_configuration_finds_the_stiff_grid_boundary():
+    """config/weak_grid.yaml (one inverter behind a line): at 1.2 p.u. the plant is unstable on a
+    stiff grid and stable once the line adds enough impedance; the boundary in the line's x is the
+    one of the plant with x added to its own Lg (the connection point's capacitance aside)."""
+    from scipy.optimize import brentq
+
+    config = read_microgrid_config(ROOT / "config" / "weak_grid.yaml")
+    sweep = parameter_sweep(with_setting(config, "grid.ug", 1.2), "lines.0.x", [0.005, 0.02, 0.1, 1.0],
+                            ROOT / "config")
+    assert [p["max_real"] > 0 for p in sweep["points"]] == [True, False, False, False]
+    merged = brentq(lambda x: InverterPlant(PlantParameters(Lg=0.05 + x, Rg=0.02)).eigenvalues(1.2).real.max(),
+                    0.0, 0.05)
+    assert len(sweep["boundaries"]) == 1 and abs(sweep["boundaries"][0] - merged) < 0.01 * merged
+    at_one = parameter_sweep(config, "lines.0.x", [0.01, 0.1, 1.0], ROOT / "config")
+    assert all(p["max_real"] < 0 for p in at_one["points"]) and not at_one["boundaries"]
+
+
 def test_two_units_of_half_the_rating_are_one_of_the_full_rating():
     plant = InverterPlant()
     network = ([Bus("b", 0.02, load_r=2.0, load_x=0.5)], [Line("b", "grid", 0.01, 0.1)])
@@ -119,6 +137,25 @@ def test_identified_equations_stand_in_for_the_plant():
         assert sum(mode["unit_shares"].values()) == pytest.approx(1.0)
     # grid-connected droop inverters deliver their set point
     assert all(u["p"] == pytest.approx(0.5, abs=0.02) for u in report["units"])
+
+
+def test_modes_faster_than_an_identified_units_records_are_noted():
+    """A network resonance above a quarter of an identified unit's sample rate, with the unit's
+    share in it, carries a caution; slower modes and units without a recorded sample period
+    (the plant) do not."""
+    plant = InverterPlant()
+    model = plant_as_explicit_model(plant)
+    model.metadata["training"] = {"sample_period": 1e-4}  # records at 10 kHz
+    grid = Microgrid([Unit("target", model, "poc")], [Bus("poc", 0.01)], [Line("poc", "grid", 0.01, 0.05)])
+    report = microgrid_report(grid, 1.0, 0.0, modes=grid.n_states)
+    noted = [m for m in report["weakest_modes"] if m.get("note")]
+    assert noted and all(m["frequency_hz"] > 2500.0 and m["unit_shares"]["target"] >= 0.1 for m in noted)
+    assert "target's records (10000 Hz)" in noted[0]["note"]
+    assert all(m["frequency_hz"] <= 2500.0 or m["unit_shares"]["target"] < 0.1
+               for m in report["weakest_modes"] if not m.get("note"))
+    assert any(m["frequency_hz"] > 3000.0 for m in noted)  # the capacitor-line resonance near 3.9 kHz
+    bare = Microgrid([Unit("target", plant, "poc")], [Bus("poc", 0.01)], [Line("poc", "grid", 0.01, 0.05)])
+    assert not any(m.get("note") for m in microgrid_report(bare, 1.0, 0.0, modes=bare.n_states)["weakest_modes"])
 
 
 def test_load_step_transient_is_the_same_with_the_equations():

@@ -39,6 +39,8 @@ import numpy as np
 from ..equilibrium import EquilibriumNotFound, root
 
 GRID = "grid"
+#: a unit's share of a mode's participation from which its identified bandwidth is noted on the mode
+MODE_SHARE_NOTED = 0.1
 #: the virtual HIL's base angular frequency (2π·60 rad/s, ``pisml_ros.plant.parameters.OMEGA_BASE``)
 DEFAULT_BASE_HZ = 60.0
 
@@ -788,7 +790,7 @@ def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0
     least-damped modes with each unit's share in them, and where identified units carry their
     coefficients' covariance, how far their data pin the microgrid's verdict (``uncertainty``, as
     ``pisml analyse`` has it for one model; :meth:`Microgrid.max_real_std`). JSON-ready."""
-    from .operating_point import analyse_operating_point, coverage_note, data_coverage
+    from .operating_point import analyse_operating_point, bandwidth_note, coverage_note, data_coverage
 
     report, x, summary = analyse_operating_point(microgrid, ug, theta_g)
     units = []
@@ -812,12 +814,18 @@ def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0
     report["units"] = units
     report["islanded"] = microgrid.islanded
     report["frequency_pu"] = microgrid.frequency(x, (ug, theta_g))
-    report["weakest_modes"] = [
-        {"eigenvalue": [float(summary.eigenvalues[k].real), float(summary.eigenvalues[k].imag)],
-         "damping": float(summary.damping[k]), "frequency_hz": float(summary.frequencies_hz[k]),
-         "unit_shares": microgrid.unit_shares(summary.participation[k]),
-         "dominant_states": summary.dominant_states(k)}
-        for k in range(min(modes, len(summary.eigenvalues)))]
+    report["weakest_modes"] = []
+    for k in range(min(modes, len(summary.eigenvalues))):
+        shares = microgrid.unit_shares(summary.participation[k])
+        mode = {"eigenvalue": [float(summary.eigenvalues[k].real), float(summary.eigenvalues[k].imag)],
+                "damping": float(summary.damping[k]), "frequency_hz": float(summary.frequencies_hz[k]),
+                "unit_shares": shares, "dominant_states": summary.dominant_states(k)}
+        # an identified unit with a real share in a mode faster than its records pin (a network resonance)
+        notes = [bandwidth_note(unit.system, mode["frequency_hz"], unit.name) for unit in microgrid.units
+                 if shares.get(unit.name, 0.0) >= MODE_SHARE_NOTED]
+        if any(notes):
+            mode["note"] = "; ".join(n for n in notes if n)
+        report["weakest_modes"].append(mode)
     return report
 
 

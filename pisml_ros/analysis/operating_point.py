@@ -134,6 +134,32 @@ def coverage_note(coverage: dict | None) -> str:
         f"{name} {ranges[name][0]:.4g}-{ranges[name][1]:.4g}" for name in coverage["outside"])
 
 
+#: a mode faster than this fraction of an identified model's sample rate gets a note: with fewer
+#: than four samples per period its records hardly pin the damping (a rule of thumb, see
+#: :func:`bandwidth_note`)
+BANDWIDTH_FRACTION = 0.25
+
+
+def bandwidth_note(system, frequency_hz: float, name: str = "the model") -> str:
+    """One line on a mode faster than :data:`BANDWIDTH_FRACTION` of the sample rate of the records
+    ``system`` was identified on (``metadata["training"]["sample_period"]``), e.g. ``"3857 Hz:
+    above a quarter of the sample rate of target's records (10000 Hz), so its damping rests on
+    what they hardly pin"``; empty below it, or where the system carries no sample period (the
+    plant, models saved before it was recorded).
+
+    Such a mode appears where a network resonance meets an identified unit (a capacitor at its
+    terminals, a line): the unit's equations are then evaluated on fast dynamics its records only
+    graze. Measured (README, "Grid strength"): one of the 40 dB models puts a 3.9 kHz network
+    resonance at +51 1/s where the plant damps it at −170 1/s.
+    """
+    metadata = getattr(system, "metadata", None) or {}
+    period = (metadata.get("training") or {}).get("sample_period")
+    if not period or not frequency_hz > BANDWIDTH_FRACTION / float(period):
+        return ""
+    return (f"{frequency_hz:.0f} Hz: above a quarter of the sample rate of {name}'s records ({1.0 / float(period):.0f} "
+            f"Hz), so its damping rests on what they hardly pin")
+
+
 def max_real_part(system, ug: float, theta_g: float = 0.0) -> float:
     """Largest real part of the eigenvalues at the equilibrium for (ug, theta_g)."""
     return _equilibrium_and_max_real(system, ug, theta_g)[1]

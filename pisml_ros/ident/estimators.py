@@ -117,7 +117,9 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
             "training": {"trajectories": len(train), "samples": train.n_samples,
                          "smallsignal_trajectories": len(smallsignal) if smallsignal is not None else 0,
                          "records_at_rest": records_at_rest(train),
-                         "input_range": input_range}}
+                         "input_range": input_range,
+                         # the bandwidth the records pin (analysis.operating_point.bandwidth_note)
+                         "sample_period": float(train.dt)}}
 
 
 def _growth_rates(name: str, candidates: dict, points: list, cache: dict) -> list:
