@@ -404,7 +404,7 @@ def cmd_microgrid(args) -> int:
         re, im = mode["eigenvalue"]
         shares = ", ".join(f"{name} {share:.0%}" for name, share in mode["unit_shares"].items() if share >= 0.005)
         print(f"  {re:12.4f} {im:+13.4f}j  damping {mode['damping']:.4f}, {mode['frequency_hz']:.3f} Hz: {shares}"
-              + (f"\n      caution: {mode['note']}" if mode.get("note") else ""))
+              + (f"\n      caution: {mode['note']}" if mode.get("note") and im >= 0 else ""))  # once per pair
     if "sweep" in report:
         sweep = report["sweep"]
         print(f"  sweep of {sweep['parameter']}:")
