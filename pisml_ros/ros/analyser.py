@@ -302,6 +302,9 @@ class AnalyserNode(Node):
         if uncertainty and uncertainty["verdict"] == "undetermined":
             low, high = uncertainty["max_real_interval"]
             verdict += f" (not decided by the data: max real part {low:.3g} .. {high:.3g} 1/s, 2 std)"
+        deciding = report["weakest_modes"][0] if report["weakest_modes"] else {}
+        if deciding.get("note"):  # the verdict rests on a mode faster than the unit's records pin
+            verdict += f"; caution: {deciding['note']}"
         self.get_logger().info(f"{model_id} as microgrid unit {unit!r}: {verdict}, max real part "
                                f"{report['max_real']:.4g} 1/s")
         return status(name, DiagnosticStatus.OK if report["stable"] else DiagnosticStatus.ERROR,
