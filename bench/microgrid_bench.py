@@ -124,32 +124,28 @@ def grid_strength(target) -> dict:
 
 
 def wrong_verdicts(row: dict, truth: dict, ug: float) -> list:
-    """The x of WEAK_X where the model's stability verdict differs from the plant's (or it has no
-    operating point), as text."""
+    """The (x, what the model says) at the x of WEAK_X where the model's stability verdict differs
+    from the plant's ("stable", "unstable", or "no eq.": no operating point)."""
     mine, theirs = row["grid_strength"][str(ug)]["max_real"], truth["grid_strength"][str(ug)]["max_real"]
     wrong = []
     for x, m, t in zip(WEAK_X, mine, theirs):
         if m is None:
-            wrong.append(f"{x:g} (no eq.)")
+            wrong.append((x, "no eq."))
         elif (m > 0) != (t > 0):
-            wrong.append(f"{x:g} ({'unstable' if m > 0 else 'stable'})")
+            wrong.append((x, "unstable" if m > 0 else "stable"))
     return wrong
 
 
 def verdicts_text(wrong: list) -> str:
     """:func:`wrong_verdicts` for a table cell: "none", or runs of neighbouring x of WEAK_X with the
     same wrong verdict, e.g. "0.02-1.5 unstable"."""
-    if not wrong:
-        return "none"
-    runs = []  # [first x, last x, what the model says, index of the last x in WEAK_X]
-    for item in wrong:
-        x_text, said = item.split(" ", 1)
-        k = [f"{x:g}" for x in WEAK_X].index(x_text)
-        if runs and runs[-1][2] == said and runs[-1][3] == k - 1:
-            runs[-1][1], runs[-1][3] = x_text, k
+    runs = []  # [first x, last x, what the model says]
+    for x, said in wrong:
+        if runs and runs[-1][2] == said and WEAK_X.index(runs[-1][1]) == WEAK_X.index(x) - 1:
+            runs[-1][1] = x
         else:
-            runs.append([x_text, x_text, said, k])
-    return ", ".join(f"{a}{'' if a == b else '-' + b} {said.strip('()')}" for a, b, said, _ in runs)
+            runs.append([x, x, said])
+    return ", ".join(f"{a:g}{'' if a == b else f'-{b:g}'} {said}" for a, b, said in runs) or "none"
 
 
 def cell(value, digits=3):

@@ -143,8 +143,8 @@ BANDWIDTH_FRACTION = 0.25
 def bandwidth_note(system, frequency_hz: float, name: str = "the model") -> str:
     """One line on a mode faster than :data:`BANDWIDTH_FRACTION` of the sample rate of the records
     ``system`` was identified on (``metadata["training"]["sample_period"]``), e.g. ``"3857 Hz:
-    above a quarter of the sample rate of target's records (10000 Hz), so its damping rests on
-    what they hardly pin"``; empty below it, or where the system carries no sample period (the
+    above 0.25 x the sample rate of target's records (10000 Hz), so its damping rests on what
+    they hardly pin"``; empty below it, or where the system carries no sample period (the
     plant, models saved before it was recorded).
 
     Such a mode appears where a network resonance meets an identified unit (a capacitor at its
@@ -156,8 +156,8 @@ def bandwidth_note(system, frequency_hz: float, name: str = "the model") -> str:
     period = (metadata.get("training") or {}).get("sample_period")
     if not period or not frequency_hz > BANDWIDTH_FRACTION / float(period):
         return ""
-    return (f"{frequency_hz:.0f} Hz: above a quarter of the sample rate of {name}'s records ({1.0 / float(period):.0f} "
-            f"Hz), so its damping rests on what they hardly pin")
+    return (f"{frequency_hz:.0f} Hz: above {BANDWIDTH_FRACTION:g} x the sample rate of {name}'s records "
+            f"({1.0 / float(period):.0f} Hz), so its damping rests on what they hardly pin")
 
 
 def max_real_part(system, ug: float, theta_g: float = 0.0) -> float:
