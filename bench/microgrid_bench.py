@@ -236,6 +236,19 @@ def write_markdown(results: dict, path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+def _save_figure(fig, axes, ylabel: str, legend_size: int, path: Path) -> None:
+    """The y label and the legend on the first of ``axes``, then ``fig`` written to ``path`` and closed."""
+    import matplotlib.pyplot as plt
+
+    first = np.atleast_1d(axes)[0]
+    first.set_ylabel(ylabel)
+    first.legend(fontsize=legend_size)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def strength_figure(truth: dict, rows: list, path: Path) -> None:
     """The largest real part against the line's x (grid strength) at each grid voltage of WEAK_UG:
     the plant and every PISML model of noisy data."""
@@ -259,12 +272,7 @@ def strength_figure(truth: dict, rows: list, path: Path) -> None:
         ax.set_yscale("symlog", linthresh=1.0)  # a model's spurious mode can sit at +50 1/s, the plant's near -1
         ax.set_xlabel("line reactance x (p.u.; SCR about 1/x)")
         ax.set_title(f"grid at {ug:g} p.u.")
-    np.atleast_1d(axes)[0].set_ylabel("largest real part (1/s)")
-    np.atleast_1d(axes)[0].legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save_figure(fig, axes, "largest real part (1/s)", 8, path)
 
 
 def figure(truth: dict, rows: list, path: Path) -> None:
@@ -293,12 +301,7 @@ def figure(truth: dict, rows: list, path: Path) -> None:
                         label=f"{method}, {data}, recording {row['seed']}")
         ax.set_title(f"{names[k] if k < len(names) else k}: injected current, D axis")
         ax.set_xlabel("t (ms)")
-    np.atleast_1d(axes)[0].set_ylabel("p.u.")
-    np.atleast_1d(axes)[0].legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save_figure(fig, axes, "p.u.", 7, path)
 
 
 def main(argv=None) -> int:
