@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: env demo test test-fast bags bench bench-quick bench-gap bench-oracle bench-plants bench-scenarios bench-microgrid clean
+.PHONY: env demo test test-fast bags bench bench-quick bench-gap bench-oracle bench-plants bench-scenarios bench-microgrid bench-independent clean
 
 env:
 	@bash scripts/bootstrap_env.sh
@@ -61,3 +61,8 @@ bench-microgrid: env
 
 clean:
 	rm -rf build install log out .pytest_cache
+
+# the models of `make bench` (bench/models/) scored by code that rebuilds f(x, u) from each JSON file alone
+# (sympy, scipy), side by side with the package's figures (~1 min): bench/independent_results.json, bench/INDEPENDENT_RESULTS.md
+bench-independent: env
+	$(PY) bench/independent_score.py --compare --out bench/independent_results.json --markdown bench/INDEPENDENT_RESULTS.md

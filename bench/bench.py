@@ -479,8 +479,13 @@ def main(argv=None) -> int:
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--out", default=str(BENCH / "results.json"))
     parser.add_argument("--markdown", default=str(BENCH / "RESULTS.md"))
+    parser.add_argument("--models", help="folder for the standard plant's explicit models and the test records, "
+                                         "which bench/independent_score.py scores (default: bench/models for a "
+                                         "full run with the default settings, none otherwise; '' writes none)")
     add_settings_option(parser)
     args = parser.parse_args(argv)
+    if args.models is None:  # a quick run or another setting must not overwrite the default run's models
+        args.models = "" if args.quick or args.set else str(BENCH / "models")
     from pisml_ros.report.figures import plot_spectra
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -501,6 +506,8 @@ def main(argv=None) -> int:
             for method in methods:
                 row, est = run_fit(method, plant, train, small, test, sweep, truth, config, f"{plant_name}/{noise}")
                 row.update(plant=plant_name, noise=noise, sweep="main")
+                if plant_name == "standard":
+                    save_model(args, est, f"standard_{noise.replace(' ', '')}_{method}")
                 runs.append(row)
                 save(args, runs, started, config)
                 if row.get("_spectrum_ug08"):
@@ -519,15 +526,29 @@ def main(argv=None) -> int:
                                    *[("recording", seed, {"snr": 40.0, "seed": seed}) for seed in RECORDINGS]]:
             plant, train, small, test = datasets({}, **kwargs)
             truth = {g: plant.eigenvalues(g, 0.0) for g in UG_GRID}
-            row, _ = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant, UG_GRID), truth, config,
-                             f"{key} {value:g}")
+            row, est = run_fit("pisml", plant, train, small, test, ug_sweep_set(plant, UG_GRID), truth, config,
+                               f"{key} {value:g}")
             row.update(sweep=key, **{key: value})
+            if key == "recording":
+                save_model(args, est, f"standard_40dB_pisml_recording_{value}")
             runs.append(row)
             save(args, runs, started, config)
             print(f"{key} {value:g}: IOD {fmt(row.get('iod'))} OOD {fmt(row.get('ood'))} {row['seconds']:.1f} s",
                   flush=True)
     save(args, runs, started, config, final=True)
+    if args.models:
+        from independent_score import write_reference
+
+        write_reference(Path(args.models) / "reference")
     return 0
+
+
+def save_model(args, est, name: str) -> None:
+    """The fit's explicit model as ``<--models>/<name>.json`` (none for Pure NODE or a failed fit), for
+    scoring by anyone's code (bench/independent_score.py rebuilds f(x, u) from the file alone)."""
+    if args.models and est is not None and est.explicit_model_ is not None:
+        Path(args.models).mkdir(parents=True, exist_ok=True)
+        est.explicit_model_.save(Path(args.models) / f"{name}.json")
 
 
 def save(args, runs, started, config, final=False):
