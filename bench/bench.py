@@ -53,10 +53,11 @@ BENCH = Path(__file__).resolve().parent
 
 
 def datasets(effects, snr, seed=0, n_traj=12, duration=None, params=None, dt=1.0 / SAMPLE_RATE_HZ,
-             smallsignal_ug=0.8, input_noise=False, input_quieter_db=0.0, **training):
+             smallsignal_ug=0.8, input_noise=False, input_quieter_db=0.0, smallsignal=True, **training):
     """The plant and its training, small-signal and test records (the paper protocol by default;
     ``input_noise``: the noise on the measured inputs ug, theta_g too, not on the states only, at
-    ``snr`` + ``input_quieter_db``;
+    ``snr`` + ``input_quieter_db``; ``smallsignal`` False: None for the small-signal records, a fit
+    without them;
     ``training``: more keywords of training_schedules, as scenarios_bench.py changes them)."""
     plant = InverterPlant(params, effects=effects or None)
     duration = duration or 0.04
@@ -69,7 +70,7 @@ def datasets(effects, snr, seed=0, n_traj=12, duration=None, params=None, dt=1.0
                                       input_snr_db=snr + input_quieter_db)
         small = add_measurement_noise(small, snr, seed=seed + 202, include_inputs=input_noise,
                                       input_snr_db=snr + input_quieter_db)
-    return plant, train, small, test
+    return plant, train, small if smallsignal else None, test
 
 
 def plant_grid(plant):

@@ -242,9 +242,9 @@ def write_markdown(rows: list[dict], path: Path, command: str) -> None:
     for r in rows:
         p = r.get("package") or {}
         pw = ((p.get("spectra") or {}).get("0.8") or {}).get("w")
-        differ = "; ".join(
-            f"ug {g}: max Re {w((r['spectra'][g] or {}).get('max_real'))} / {w(((p['spectra'].get(g)) or {}).get('max_real'))}"
-            for g in r.get("equilibria_differ", [])) or "none"
+        differ = "; ".join(f"ug {g}: max Re {w((r['spectra'][g] or {}).get('max_real'))} / "
+                           f"{w((p['spectra'].get(g) or {}).get('max_real'))}"
+                           for g in r.get("equilibria_differ", [])) or "none"
         lines.append(f"| {r['model']} | {r['n_parameters']} | {pct(r['iod'])} / {pct(p.get('iod'))} | "
                      f"{pct(r['ood'])} / {pct(p.get('ood'))} | {w(r['w_ug08'])} / {w(pw)} | "
                      f"{', '.join(r['spurious']) or 'none'} | {', '.join(r['no_equilibrium']) or 'none'} | {differ} |")

@@ -38,6 +38,8 @@ SCENARIOS = {
     "noisy inputs": {"input_noise": True},
     # ... at 20 dB less noise than the states (at --noise 40: 60 dB on ug, theta_g)
     "inputs 20 dB quieter": {"input_noise": True, "input_quieter_db": 20.0},
+    # the training records alone (pisml identify without --smallsignal; stop 52)
+    "no small-signal records": {"smallsignal": False},
 }
 
 

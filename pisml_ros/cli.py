@@ -215,7 +215,8 @@ def _print_uncertainty(uncertainty: dict | None, whose: str) -> None:
 
 
 def cmd_analyse(args) -> int:
-    from .analysis.operating_point import coverage_note, operating_point_report, ug_stability_margin
+    from .analysis.operating_point import (coverage_note, operating_point_report, other_equilibria_note,
+                                           ug_stability_margin)
     from .plant import EquilibriumError
 
     from .model import EquilibriumNotFound, ExplicitModel
@@ -265,6 +266,8 @@ def cmd_analyse(args) -> int:
     note = coverage_note(report.get("data_coverage"))
     if note:
         print(f"  note: {note}")
+    for line in other_equilibria_note(report):
+        print(f"  caution: {line}")
     if args.model != "plant":
         from .ident import selection_warnings
 

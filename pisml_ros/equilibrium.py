@@ -62,3 +62,26 @@ def find_equilibrium(field: Callable, jacobian: Callable, inputs, reference_poin
         if x is not None:
             return x
     raise EquilibriumNotFound(f"no equilibrium of the {what} at inputs {u.tolist()}")
+
+
+def distinct_roots(field: Callable, jacobian: Callable, inputs, starts, accept: Callable, known=(),
+                   box=None, rtol: float = 1e-6) -> list:
+    """The equilibria f(x, u) = 0 found from each of ``starts`` at the fixed ``inputs`` (no
+    continuation), other than the ``known`` ones and each other (apart by more than ``rtol`` relative
+    to their size), and inside ``box`` = (low, high) where given.
+
+    Returns
+    -------
+    list of ndarray
+    """
+    u = np.asarray(inputs, dtype=float)
+    found = [np.asarray(x, dtype=float) for x in known]
+    new = []
+    for start in starts:
+        x = root(field, jacobian, u, np.asarray(start, dtype=float), accept)
+        if x is None or box is not None and not np.all((box[0] <= x) & (x <= box[1])):
+            continue
+        if all(np.linalg.norm(x - y) > rtol * (1.0 + np.linalg.norm(y)) for y in found):
+            found.append(x)
+            new.append(x)
+    return new

@@ -437,6 +437,29 @@ def test_data_coverage_flags_operating_points_outside_the_training_inputs():
     assert data_coverage(InverterPlant(), (0.4, 0.0)) is None
 
 
+def test_the_report_names_a_second_equilibrium_near_the_records():
+    from pisml_ros.analysis.operating_point import operating_point_report, other_equilibria_note
+
+    # dx/dt = -(x - 1)(x - 1.05) + (ug - 1): at ug 1 an unstable root at 1 and a stable one at 1.05
+    # (a fold of the model's own at ug 1.000625), and a third root nowhere (one state, degree 2)
+    def model(states):
+        refs = [{"inputs": [1.0, 0.0], "state": [s]} for s in states]
+        return ExplicitModel(["x"], ["ug", "theta_g"], ["1", "x", "x**2", "ug"], [[-2.05], [2.05], [-1.0], [1.0]],
+                             {"reference_points": refs})
+
+    report = operating_point_report(model([0.99, 1.07]), 1.0)
+    assert report["operating_point"]["state"]["x"] == pytest.approx(1.0) and not report["stable"]
+    [other] = report["other_equilibria"]
+    assert other["distance"] == pytest.approx(0.05) and other["stable"] and other["max_real"] == pytest.approx(-0.05)
+    assert other["state"] == {"x": pytest.approx(1.05)} and other["differs_most"] == ["x"]
+    [line] = other_equilibria_note(report)
+    assert line.startswith("another equilibrium of the model 0.05 away in state (most in x), stable (largest real "
+                           "part -0.05 1/s)")
+    # rest states that all lead to the same root: nothing else to say; the plant says nothing either
+    assert "other_equilibria" not in operating_point_report(model([0.99]), 1.0)
+    assert "other_equilibria" not in operating_point_report(InverterPlant(), 1.0)
+
+
 def test_equilibrium_prior_in_states_is_the_newton_step_to_the_models_equilibrium(truth):
     """With ``equilibrium_space="states"`` the residuals are sqrt(w)·(J⁻¹f)(x_rest)·sqrt(samples)/noise:
     the distance from the rest state to the model's equilibrium in units of the noise left in the rest
@@ -485,3 +508,16 @@ def _equilibrium_prior_case(truth, space):
     rests = [steady_start_mean(tr) for tr in small]
     return (model, data, fitter, problem, start, small, weights, np.mean([r for _, r in rests], axis=0),
             sum(n for n, _ in rests))
+
+
+def test_a_saved_model_is_readable_as_a_plainly_written_file_would_be(tmp_path):
+    import os
+
+    from pisml_ros.fileio import atomic_write_text
+
+    path = ExplicitModel(["x"], ["ug", "theta_g"], ["x"], [[-1.0]]).save(tmp_path / "m.json")
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    assert path.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777  # not the temporary file's 0600
+    os.chmod(path, 0o640)  # an existing file keeps its own
+    assert atomic_write_text(path, "{}").stat().st_mode & 0o777 == 0o640

@@ -10,6 +10,7 @@ from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum
 from pisml_ros.data import Dataset, Trajectory, read_dataset, write_dataset
 from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
 from pisml_ros.ident.backbone import fit_backbone, noise_moments, sparse_regression
+from pisml_ros.ident.estimators import NO_SMALLSIGNAL_WARNING
 from pisml_ros.ident.library import coupling_separation, physics_library
 from pisml_ros.ident.trajfit import backward_elimination
 from pisml_ros.model import ExplicitModel
@@ -450,6 +451,7 @@ def test_a_fit_on_noisy_inputs_holds_them_and_says_so(train, small):
     held = est.explicit_model_.metadata["identification"]["inputs_denoised"]
     assert set(held) == {"training", "smallsignal"} and held["training"]["ug"]["snr_db"] == pytest.approx(40, abs=2)
     assert any("the measured inputs carry noise (ug at 40 dB SNR" in w for w in selection_warnings(est.explicit_model_))
+    assert NO_SMALLSIGNAL_WARNING not in selection_warnings(est.explicit_model_)
     # off: taken as given, nothing recorded; a baseline records it too
     off = make_estimator("mod-sindy", IdentConfig.from_mapping({"input_denoise": "off"})).fit(noisy_train)
     assert off.inputs_denoised_ == {} and "inputs_denoised" not in off.explicit_model_.metadata["identification"]
@@ -457,6 +459,17 @@ def test_a_fit_on_noisy_inputs_holds_them_and_says_so(train, small):
     assert on.explicit_model_.metadata["identification"]["inputs_denoised"]["training"]["ug"]["replaced"] > 0
     with pytest.raises(ConfigError, match="input_denoise must be auto or off, got 'yes'"):
         IdentConfig.from_mapping({"input_denoise": "yes"})
+
+
+def test_a_noisy_fit_without_small_signal_records_says_what_it_lacks(train):
+    from pisml_ros.ident import selection_warnings
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    noisy = make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(add_measurement_noise(train, 40.0, seed=6))
+    assert NO_SMALLSIGNAL_WARNING in selection_warnings(noisy.explicit_model_)
+    # exact records pin the slow modes without them (the protocol's clean recordings: the same figures)
+    clean = make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(train)
+    assert NO_SMALLSIGNAL_WARNING not in selection_warnings(clean.explicit_model_)
 
 
 def test_pure_node_has_no_explicit_model_but_a_spectrum(train):

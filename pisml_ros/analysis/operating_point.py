@@ -53,7 +53,36 @@ def analyse_operating_point(system, ug: float, theta_g: float = 0.0) -> tuple:
     uncertainty = verdict_uncertainty(system, x, (ug, theta_g), report["max_real"])
     if uncertainty is not None:
         report["uncertainty"] = uncertainty
+    others = other_equilibria(system, (ug, theta_g), x, names)
+    if others:
+        report["other_equilibria"] = others
     return report, x, summary
+
+
+def other_equilibria(system, inputs, x, names) -> list | None:
+    """The system's other equilibria near its identification records at ``inputs``
+    (``system.other_equilibria``, identified models), nearest first: ``[{"distance", "max_real",
+    "stable", "differs_most" (the three states furthest from ``x``), "state"}]``; None where the
+    system cannot say (the plant, an assembled microgrid)."""
+    find = getattr(system, "other_equilibria", None)
+    found = find(inputs, x) if callable(find) else None
+    if found is None:
+        return None
+    out = []
+    for y in found:
+        max_real = float(np.linalg.eigvals(system.jacobian(y, np.asarray(inputs, dtype=float))).real.max())
+        order = np.argsort(-np.abs(y - x))[:3]
+        out.append({"distance": float(np.linalg.norm(y - x)), "max_real": max_real, "stable": bool(max_real < 0),
+                    "differs_most": [names[k] for k in order], "state": {n: float(v) for n, v in zip(names, y)}})
+    return sorted(out, key=lambda item: item["distance"])
+
+
+def other_equilibria_note(report: dict) -> list:
+    """Lines on ``report["other_equilibria"]`` (:func:`operating_point_report`), one per equilibrium."""
+    return [f"another equilibrium of the model {item['distance']:.3g} away in state (most in "
+            f"{', '.join(item['differs_most'])}), {'stable' if item['stable'] else 'unstable'} (largest real part {item['max_real']:+.4g} "
+            f"1/s): the report is for the one followed from the records' rest states, and which one the inverter "
+            f"sits at depends on how it got there" for item in report.get("other_equilibria") or []]
 
 
 def verdict_uncertainty(system, x, inputs, max_real: float) -> dict | None:

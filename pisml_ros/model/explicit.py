@@ -103,6 +103,30 @@ class ExplicitModel:
         return find_equilibrium(self.vector_field, self.jacobian, u, refs, x0=x0, tol=tol,
                                 scale=np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0), what="model")
 
+    def other_equilibria(self, inputs, x, tol: float = 1e-9) -> list | None:
+        """Equilibria at ``inputs`` other than ``x`` (the one :meth:`equilibrium` follows from the
+        nearest rest states), found from every stored rest state (``metadata["reference_points"]``)
+        without following the inputs, within the rest states' span widened by its width on each
+        side; None for a model without rest states.
+
+        A model can have a second equilibrium close to the first near a fold of its own (stop 52,
+        protocol recording 7 at 40 dB, ug 1.2: the branch followed from the records stable at
+        -0.246 1/s, another 0.066 away in state, unstable at +0.207 1/s): which one a system sits at
+        then depends on its history.
+        """
+        from ..equilibrium import distinct_roots
+
+        refs = self.metadata.get("reference_points")
+        if not refs:
+            return None
+        states = np.array([r["state"] for r in refs], dtype=float)
+        width = np.maximum(states.max(axis=0) - states.min(axis=0), 0.1)
+        scale = np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0)
+        u = np.asarray(inputs, dtype=float)
+        return distinct_roots(self.vector_field, self.jacobian, u, states,
+                              lambda y, v: bool(np.max(np.abs(self.vector_field(y, v)) / scale) < tol), known=[x],
+                              box=(states.min(axis=0) - width, states.max(axis=0) + width))
+
     def eigenvalues(self, *inputs: float) -> np.ndarray:
         """Eigenvalues (1/s) at the equilibrium for the given inputs."""
         return np.linalg.eigvals(self.jacobian(self.equilibrium(*inputs), np.array(inputs, dtype=float)))

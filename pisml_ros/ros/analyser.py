@@ -251,12 +251,17 @@ class AnalyserNode(Node):
             # a verdict outside the identification data rests on the model's extrapolation: say so
             note = coverage_note(report.get("data_coverage"))
             message += f" ({note})" if note else ""
+            # a second equilibrium nearby: which one the inverter sits at depends on its history
+            others = report.get("other_equilibria") or []
+            message += "".join(f" (another equilibrium {o['distance']:.3g} away: "
+                               f"{'stable' if o['stable'] else 'unstable'}, max real part {o['max_real']:.3g} 1/s)"
+                               for o in others)
             msg.message = message
             self.stability.publish(msg)
             statuses.append(status(name, level, f"{model_id}: {message}", {
                 "max_real_part": f"{report['max_real']:.6g}", "min_damping_ratio": f"{report['min_damping']:.6g}",
                 "ug_margin": f"{report['ug_margin']:.6g}", "model_id": model_id,
-                "extrapolated": str(bool(note)).lower(),
+                "extrapolated": str(bool(note)).lower(), "other_equilibria": str(len(others)),
                 "verdict": uncertainty["verdict"] if uncertainty else ("stable" if report["stable"] else "unstable")}))
             self.get_logger().info(f"{model_id} at ug={ug:g}: {message}, max real part {report['max_real']:.4g} 1/s, "
                                    f"ug margin {report['ug_margin']:.4g}")
