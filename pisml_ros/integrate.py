@@ -104,7 +104,7 @@ def _scipy(plant, x0, inputs, dt, method, rtol, atol):
 
 
 def simulate_many(system, starts, inputs, dt: float, substeps: int = 4, method: str = "rk4",
-                  n_out: int | None = None) -> list[np.ndarray]:
+                  n_out: int | None = None, keep_before_divergence: bool = False) -> list[np.ndarray]:
     """Simulate several trajectories, those of equal length together in one vectorised pass.
 
     Parameters
@@ -113,12 +113,17 @@ def simulate_many(system, starts, inputs, dt: float, substeps: int = 4, method: 
     inputs : sequence of ndarray, each (n_samples_k, n_inputs)
     n_out : int, optional
         Keep only the first ``n_out`` state columns (the measured ones).
+    keep_before_divergence : bool
+        RK4: a diverging trajectory keeps its samples before the first non-finite one (NaN from
+        there on), so that a window before the divergence can still be scored, as any outside
+        scorer would (stop 52: Std SINDy's clean model scores 8.4 % in the IOD window and diverges
+        after it). Default: NaN throughout (a fit's cost sees a diverging run as one failure).
 
     Returns
     -------
     list of ndarray
         One (n_samples_k, n_out) prediction per trajectory; a trajectory that diverges
-        is NaN throughout, without spoiling the others.
+        is NaN throughout (or from its divergence on), without spoiling the others.
     """
     groups: dict[int, list[int]] = {}
     for k, u in enumerate(inputs):
@@ -131,7 +136,9 @@ def simulate_many(system, starts, inputs, dt: float, substeps: int = 4, method: 
             # rows never interact in a vector field: a diverging one does not spoil the others
             with np.errstate(all="ignore"):
                 pred = _rk4(system, x0, u, dt, substeps, check=False)
-            pred[~np.all(np.isfinite(pred), axis=(1, 2))] = np.nan
+            bad = ~np.all(np.isfinite(pred), axis=2)  # (trajectories, samples)
+            for row in np.flatnonzero(bad.any(axis=1)):
+                pred[row, int(np.argmax(bad[row])) if keep_before_divergence else 0:] = np.nan
         else:
             try:
                 with np.errstate(all="ignore"):

@@ -521,3 +521,19 @@ def test_a_saved_model_is_readable_as_a_plainly_written_file_would_be(tmp_path):
     assert path.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777  # not the temporary file's 0600
     os.chmod(path, 0o640)  # an existing file keeps its own
     assert atomic_write_text(path, "{}").stat().st_mode & 0o777 == 0o640
+
+
+def test_a_replay_keeps_what_came_before_a_divergence_and_a_fits_batch_does_not():
+    from pisml_ros.data import Dataset, Trajectory
+    from pisml_ros.integrate import simulate_many
+
+    # dx/dt = x^2 from x = 1 blows up at t = 1: the samples before stay, NaN from the blow-up on
+    model = ExplicitModel(["x"], ["ug", "theta_g"], ["x**2"], [[1.0]])
+    t = np.arange(20) * 0.1
+    data = Dataset(("x",), ("ug", "theta_g"), [Trajectory(0, t, np.ones((20, 1)), np.ones((20, 2)))], {"dt": 0.1})
+    pred = model.simulate(data).trajectories[0].x[:, 0]
+    assert pred[5] == pytest.approx(1 / (1 - 0.5), rel=1e-4) and np.all(np.isfinite(pred[:9]))
+    assert np.all(np.isnan(pred[11:]))
+    # a fit's batch sees the run as one failure: NaN throughout
+    [batch] = simulate_many(model, [np.ones(1)], [np.ones((20, 2))], 0.1)
+    assert np.all(np.isnan(batch))
