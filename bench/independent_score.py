@@ -214,7 +214,8 @@ def comparison_row(path: Path, data: dict, records: list[dict], truth: dict, com
     started = time.monotonic()
     row = {"model": path.name, **score(data, records, truth)}
     if compare:
-        ours = package_score(data, truth)
+        with np.errstate(all="ignore"):
+            ours = package_score(data, truth)
         row["package"] = {k: ours[k] for k in ("iod", "ood", "spectra")}
         # grid voltages where the two found different equilibria (the largest real parts differ)
         row["equilibria_differ"] = [g for g, v in row["spectra"].items()

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -81,7 +82,7 @@ def write(args, rows, started, final=False):
     """The results JSON after every fit (a crash loses nothing) and the markdown table."""
     from bench import FIT_COLUMNS, fit_cells, machine
 
-    result = {"complete": final, "command": "python bench/plants_bench.py " + " ".join(sys.argv[1:]),
+    result = {"complete": final, "command": "python bench/plants_bench.py " + shlex.join(sys.argv[1:]),
               "date": time.strftime("%Y-%m-%d"),
               "machine": machine(),
               "total_seconds": round(time.monotonic() - started, 1), "plants": PLANT_PARAMETERS, "runs": rows}

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -34,6 +35,8 @@ SCENARIOS = {
     "jumps 10-20°": {"jump_deg": (10.0, 20.0)},
     "small-signal at ug 1.0": {"smallsignal_ug": 1.0},
     "8 records of 60 ms": {"n_traj": 8, "duration": 0.06},
+    # twice the protocol's records (stop 52)
+    "24 records": {"n_traj": 24},
     # the noise on the measured grid voltage and angle too (the protocol's: on the states only)
     "noisy inputs": {"input_noise": True},
     # ... at 20 dB less noise than the states (at --noise 40: 60 dB on ug, theta_g)
@@ -99,7 +102,7 @@ def write(args, rows, started, final=False):
     """The results JSON after every fit (a crash loses nothing) and the markdown table."""
     from bench import FIT_COLUMNS, fit_cells, machine
 
-    result = {"complete": final, "command": "python bench/scenarios_bench.py " + " ".join(sys.argv[1:]),
+    result = {"complete": final, "command": "python bench/scenarios_bench.py " + shlex.join(sys.argv[1:]),
               "date": time.strftime("%Y-%m-%d"),
               "machine": machine(),
               "total_seconds": round(time.monotonic() - started, 1),
