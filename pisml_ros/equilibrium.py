@@ -27,6 +27,12 @@ def continuation(field: Callable, jacobian: Callable, u_from, x_from, u_to, step
     return x
 
 
+def residual_below(field: Callable, tol: float, scale) -> Callable[[np.ndarray, np.ndarray], bool]:
+    """The acceptance test of a root: every component of f(x, u), divided by ``scale``, below ``tol``."""
+    scale = np.asarray(scale, dtype=float)
+    return lambda x, u: bool(np.max(np.abs(field(x, u)) / scale) < tol)
+
+
 class EquilibriumNotFound(RuntimeError):
     """No equilibrium of the model at the requested inputs."""
 
@@ -50,11 +56,7 @@ def find_equilibrium(field: Callable, jacobian: Callable, inputs, reference_poin
     starts += [(np.asarray(r["inputs"], dtype=float), np.asarray(r["state"], dtype=float)) for r in refs[:3]]
     if not starts:
         raise EquilibriumNotFound(f"{what}: no starting point for an equilibrium search (no reference points)")
-    scale = np.ones(len(starts[0][1])) if scale is None else np.asarray(scale, dtype=float)
-
-    def accept(x, u_now):
-        return bool(np.max(np.abs(field(x, u_now)) / scale) < tol)
-
+    accept = residual_below(field, tol, 1.0 if scale is None else scale)
     for u_start, x_start in starts:
         x = root(field, jacobian, u_start, x_start, accept)
         if x is not None and not np.allclose(u_start, u):
@@ -64,17 +66,19 @@ def find_equilibrium(field: Callable, jacobian: Callable, inputs, reference_poin
     raise EquilibriumNotFound(f"no equilibrium of the {what} at inputs {u.tolist()}")
 
 
-def distinct_roots(field: Callable, jacobian: Callable, inputs, starts, accept: Callable, known=(),
-                   box=None, rtol: float = 1e-6) -> list:
+def distinct_roots(field: Callable, jacobian: Callable, inputs, starts, known=(), box=None, tol: float = 1e-9,
+                   scale=None, rtol: float = 1e-6) -> list:
     """The equilibria f(x, u) = 0 found from each of ``starts`` at the fixed ``inputs`` (no
-    continuation), other than the ``known`` ones and each other (apart by more than ``rtol`` relative
-    to their size), and inside ``box`` = (low, high) where given.
+    continuation; accepted as :func:`find_equilibrium` accepts one, by ``tol`` and ``scale``), other
+    than the ``known`` ones and each other (apart by more than ``rtol`` relative to their size), and
+    inside ``box`` = (low, high) where given.
 
     Returns
     -------
     list of ndarray
     """
     u = np.asarray(inputs, dtype=float)
+    accept = residual_below(field, tol, 1.0 if scale is None else scale)
     found = [np.asarray(x, dtype=float) for x in known]
     new = []
     for start in starts:

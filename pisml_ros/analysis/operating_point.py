@@ -68,9 +68,9 @@ def other_equilibria(system, inputs, x, names) -> list | None:
     found = find(inputs, x) if callable(find) else None
     if found is None:
         return None
-    out = []
+    u, out = np.asarray(inputs, dtype=float), []
     for y in found:
-        max_real = float(np.linalg.eigvals(system.jacobian(y, np.asarray(inputs, dtype=float))).real.max())
+        max_real = float(np.linalg.eigvals(system.jacobian(y, u)).real.max())
         order = np.argsort(-np.abs(y - x))[:3]
         out.append({"distance": float(np.linalg.norm(y - x)), "max_real": max_real, "stable": bool(max_real < 0),
                     "differs_most": [names[k] for k in order], "state": {n: float(v) for n, v in zip(names, y)}})
@@ -80,9 +80,10 @@ def other_equilibria(system, inputs, x, names) -> list | None:
 def other_equilibria_note(report: dict) -> list:
     """Lines on ``report["other_equilibria"]`` (:func:`operating_point_report`), one per equilibrium."""
     return [f"another equilibrium of the model {item['distance']:.3g} away in state (most in "
-            f"{', '.join(item['differs_most'])}), {'stable' if item['stable'] else 'unstable'} (largest real part {item['max_real']:+.4g} "
-            f"1/s): the report is for the one followed from the records' rest states, and which one the inverter "
-            f"sits at depends on how it got there" for item in report.get("other_equilibria") or []]
+            f"{', '.join(item['differs_most'])}), {'stable' if item['stable'] else 'unstable'} (largest real part "
+            f"{item['max_real']:+.4g} 1/s): the report is for the one followed from the records' rest states, and "
+            f"which one the inverter sits at depends on how it got there"
+            for item in report.get("other_equilibria") or []]
 
 
 def verdict_uncertainty(system, x, inputs, max_real: float) -> dict | None:

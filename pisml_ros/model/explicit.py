@@ -101,7 +101,12 @@ class ExplicitModel:
             raise ValueError(f"equilibrium needs {len(self.input_names)} input values {self.input_names}, got {inputs}")
         refs = self.metadata.get("reference_points") or [{"inputs": u.tolist(), "state": [0.0] * self.n_states}]
         return find_equilibrium(self.vector_field, self.jacobian, u, refs, x0=x0, tol=tol,
-                                scale=np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0), what="model")
+                                scale=self._residual_scale(), what="model")
+
+    def _residual_scale(self) -> np.ndarray:
+        """Each equation's size (the sum of its coefficients' magnitudes, at least 1): what a root's
+        residual is measured against."""
+        return np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0)
 
     def other_equilibria(self, inputs, x, tol: float = 1e-9) -> list | None:
         """Equilibria at ``inputs`` other than ``x`` (the one :meth:`equilibrium` follows from the
@@ -121,11 +126,9 @@ class ExplicitModel:
             return None
         states = np.array([r["state"] for r in refs], dtype=float)
         width = np.maximum(states.max(axis=0) - states.min(axis=0), 0.1)
-        scale = np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0)
-        u = np.asarray(inputs, dtype=float)
-        return distinct_roots(self.vector_field, self.jacobian, u, states,
-                              lambda y, v: bool(np.max(np.abs(self.vector_field(y, v)) / scale) < tol), known=[x],
-                              box=(states.min(axis=0) - width, states.max(axis=0) + width))
+        return distinct_roots(self.vector_field, self.jacobian, inputs, states, known=[x],
+                              box=(states.min(axis=0) - width, states.max(axis=0) + width), tol=tol,
+                              scale=self._residual_scale())
 
     def eigenvalues(self, *inputs: float) -> np.ndarray:
         """Eigenvalues (1/s) at the equilibrium for the given inputs."""

@@ -22,7 +22,7 @@ import scipy.signal
 from .effects import resolve_effects
 from .parameters import OMEGA_BASE, PlantParameters
 
-from ..equilibrium import continuation, root
+from ..equilibrium import continuation, residual_below, root
 from ..signals import INPUT_NAMES, STATE_NAMES
 
 N_MEASURED = len(STATE_NAMES)
@@ -314,10 +314,8 @@ class InverterPlant:
         raise EquilibriumError(f"no equilibrium found at ug={ug}, theta_g={theta_g}")
 
     def _accept(self, tol):
-        def accept(x, u):
-            residual = np.max(np.abs(self.vector_field(x, u) / self._residual_scale()))
-            return bool(np.isfinite(residual) and residual < tol * 1e3)
-        return accept
+        # (a NaN or infinite residual fails the comparison)
+        return residual_below(self.vector_field, tol * 1e3, self._residual_scale())
 
     @staticmethod
     def _wrap_angle(x, u):
