@@ -63,6 +63,6 @@ clean:
 	rm -rf build install log out .pytest_cache
 
 # the models of `make bench` (bench/models/) scored by code that rebuilds f(x, u) from each JSON file alone
-# (sympy, scipy), side by side with the package's figures (~1 min): bench/independent_results.json, bench/INDEPENDENT_RESULTS.md
+# (sympy, scipy), side by side with the package's figures (~2.5 min on 2 cores): bench/independent_results.json, bench/INDEPENDENT_RESULTS.md
 bench-independent: env
 	$(PY) bench/independent_score.py --compare --out bench/independent_results.json --markdown bench/INDEPENDENT_RESULTS.md
