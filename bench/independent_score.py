@@ -186,16 +186,15 @@ def write_reference(directory: Path) -> None:
                                                      indent=1))
 
 
-def package_score(data: dict, truth: dict) -> dict:
-    """The same figures as pisml_ros computes them (the benchmark's code), for --compare."""
-    sys.path[:0] = [str(BENCH), str(BENCH.parent)]
-    from bench import datasets
+def package_score(data: dict, truth: dict, test_csv: Path) -> dict:
+    """The same figures as pisml_ros computes them (the benchmark's code) on the same test records,
+    for --compare."""
     from pisml_ros.analysis.metrics import protocol_errors, spectrum_wasserstein
+    from pisml_ros.data import read_dataset
     from pisml_ros.model import ExplicitModel
 
     model = ExplicitModel.from_dict(data)
-    _, _, _, test = datasets({}, None)
-    out = dict(protocol_errors(model, test))
+    out = dict(protocol_errors(model, read_dataset(test_csv)))
     out["spectra"] = {}
     for point in truth["points"]:
         try:
@@ -209,13 +208,15 @@ def package_score(data: dict, truth: dict) -> dict:
     return out
 
 
-def comparison_row(path: Path, data: dict, records: list[dict], truth: dict, compare: bool) -> dict:
-    """One model's independent figures and, with ``compare``, the package's and where they differ."""
+def comparison_row(path: Path, data: dict, reference: Path, truth: dict, compare: bool) -> dict:
+    """One model's independent figures on ``reference``'s test records and, with ``compare``, the
+    package's and where they differ."""
     started = time.monotonic()
+    records = read_records(reference / "test.csv", data["states"], data["inputs"])
     row = {"model": path.name, **score(data, records, truth)}
     if compare:
         with np.errstate(all="ignore"):
-            ours = package_score(data, truth)
+            ours = package_score(data, truth, reference / "test.csv")
         row["package"] = {k: ours[k] for k in ("iod", "ood", "spectra")}
         # grid voltages where the two found different equilibria (the largest real parts differ)
         row["equilibria_differ"] = [g for g, v in row["spectra"].items()
@@ -273,9 +274,7 @@ def main(argv=None) -> int:
     paths = args.models or sorted(MODELS.glob("*.json"))
     rows = []
     for path in paths:
-        data = json.loads(path.read_text())
-        records = read_records(args.reference / "test.csv", data["states"], data["inputs"])
-        row = comparison_row(path, data, records, truth, args.compare)
+        row = comparison_row(path, json.loads(path.read_text()), args.reference, truth, args.compare)
         line = (f"{path.name:34s} IOD {row['iod']:8.4g} % OOD {row['ood']:8.4g} % W0.8 "
                 f"{row['w_ug08'] if row['w_ug08'] is None else round(row['w_ug08'], 3)!s:>8} "
                 f"spurious {','.join(row['spurious']) or 'none'} no eq. {','.join(row['no_equilibrium']) or 'none'}")
