@@ -40,7 +40,8 @@ from rclpy.node import Node  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from ..analysis.margins import distance_to_boundary, root_locus  # noqa: E402
-from ..analysis.operating_point import coverage_note, data_coverage, operating_point_report  # noqa: E402
+from ..analysis.operating_point import (coverage_note, data_coverage, operating_point_report,  # noqa: E402
+                                         other_equilibria_note)
 from ..fileio import atomic_write_text  # noqa: E402
 from .conversions import failed_stability_message, model_from_message, stability_message  # noqa: E402
 
@@ -252,10 +253,8 @@ class AnalyserNode(Node):
             note = coverage_note(report.get("data_coverage"))
             message += f" ({note})" if note else ""
             # a second equilibrium nearby: which one the inverter sits at depends on its history
-            others = report.get("other_equilibria") or []
-            message += "".join(f" (another equilibrium {o['distance']:.3g} away: "
-                               f"{'stable' if o['stable'] else 'unstable'}, max real part {o['max_real']:.3g} 1/s)"
-                               for o in others)
+            others = other_equilibria_note(report)
+            message += "".join(f" ({line})" for line in others)
             msg.message = message
             self.stability.publish(msg)
             statuses.append(status(name, level, f"{model_id}: {message}", {
