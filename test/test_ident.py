@@ -472,10 +472,29 @@ def test_a_noisy_fit_without_small_signal_records_says_what_it_lacks(train):
     assert NO_SMALLSIGNAL_WARNING not in selection_warnings(clean.explicit_model_)
 
 
-def test_pure_node_has_no_explicit_model_but_a_spectrum(train):
-    cfg = IdentConfig.from_mapping({"epochs": 3, "batch_windows": 8})
+def test_pure_node_has_no_explicit_model_but_a_spectrum(train, monkeypatch):
+    import torch
+
+    from pisml_ros.ident import neural
+    from pisml_ros.ident.derivatives import trajectory_windows
+
+    schedules = []
+    real_optimiser = neural.optimiser
+
+    def recording_optimiser(field, learning_rate, weight_decay, lr_schedule, steps):
+        schedules.append((learning_rate, weight_decay, lr_schedule, steps))
+        return real_optimiser(field, learning_rate, weight_decay, lr_schedule, steps)
+
+    monkeypatch.setattr(neural, "optimiser", recording_optimiser)
+    cfg = IdentConfig.from_mapping({"node_epochs": 2, "batch_windows": 64, "dropout": 0.05})
     est = make_estimator("node", cfg).fit(train)
     assert est.explicit_model_ is None
+    # dropout is PISML's residual's (the paper's Pure NODE has none)
+    assert not any(isinstance(m, torch.nn.Dropout) for m in est.model_.field.mlp.modules())
+    # trained as the paper's: AdamW, OneCycle, an epoch a pass over every window in batches
+    windows = len(trajectory_windows(train, cfg.window, stride=cfg.window // 2)[0])
+    assert schedules == [(0.005, 1e-3, "onecycle", 2 * -(-windows // 64))]
+    assert est.history_["training"]["epochs"] == [0, 1]
     assert est.model_.n_parameters > 10000
     pred = est.model_.simulate(train.select([train.trajectories[0].traj_id]))
     assert pred.trajectories[0].x.shape == train.trajectories[0].x.shape
@@ -504,6 +523,36 @@ def test_training_device_resolves_and_names_what_is_missing():
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="'cuda'.*no CUDA GPU"):
             resolve_device("cuda")
+
+
+def test_optimiser_decays_the_network_not_the_backbone_and_follows_its_schedule():
+    from pisml_ros.ident.neural import build_modules, optimiser
+
+    residual_cls, hybrid_cls = build_modules()
+    field = hybrid_cls(["x", "u"], ["x", "u"], 1, xi0=np.array([[-1.0], [2.0]]), mlp=residual_cls(2, 1, (8,), 0.05))
+    opt, sched = optimiser(field, 0.005, 1e-3, "onecycle", 50)
+    decay = {id(p): group["weight_decay"] for group in opt.param_groups for p in group["params"]}
+    assert decay.pop(id(field.xi)) == 0.0
+    assert set(decay.values()) == {1e-3} and len(decay) == len(list(field.mlp.parameters()))
+    rates = []
+    for _ in range(50):
+        rates.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    assert max(rates) == pytest.approx(0.005) and rates[0] < 0.001 and rates[-1] < 1e-4
+    # the cosine schedule starts at the rate and ends at 5 % of it; a network alone has one group
+    opt, sched = optimiser(hybrid_cls(None, ["x", "u"], 1, mlp=residual_cls(2, 1, (8,))), 1e-3, 0.0, "cosine", 10)
+    assert len(opt.param_groups) == 1 and opt.param_groups[0]["lr"] == pytest.approx(1e-3)
+    for _ in range(10):
+        opt.step()
+        sched.step()
+    assert opt.param_groups[0]["lr"] == pytest.approx(5e-5)
+    with pytest.raises(ValueError, match="lr_schedule must be cosine or onecycle, got 'step'"):
+        optimiser(field, 1e-3, 0.0, "step", 10)
+    with pytest.raises(ConfigError, match="lr_schedule must be cosine or onecycle, got 'step'"):
+        IdentConfig.from_mapping({"lr_schedule": "step"})
+    with pytest.raises(ConfigError, match="weight_decay must be >= 0"):
+        IdentConfig.from_mapping({"weight_decay": -1e-3})
 
 
 def test_unknown_method_is_named():

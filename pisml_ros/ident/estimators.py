@@ -1208,8 +1208,9 @@ def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: Explici
     out_scale = np.std(dz, axis=0) + 1e-9
     if backbone is not None:
         out_scale = 0.1 * out_scale  # the backbone carries most of the field; N learns what it misses
-    mlp = residual_cls(z.shape[1], n_x, tuple(cfg.hidden), cfg.dropout, z.mean(axis=0), z.std(axis=0) + 1e-9,
-                       out_scale)
+    # dropout only in PISML's residual: the paper's Pure NODE has none
+    mlp = residual_cls(z.shape[1], n_x, tuple(cfg.hidden), cfg.dropout if backbone is not None else 0.0,
+                       z.mean(axis=0), z.std(axis=0) + 1e-9, out_scale)
     signals = list(train.state_names) + list(train.input_names)
     if backbone is not None:
         field = hybrid_cls(backbone.terms, signals, n_x, xi0=backbone.coefficients, mlp=mlp)
@@ -1220,17 +1221,24 @@ def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: Explici
     device = resolve_device(cfg.device)
     est.metrics_["training_on_gpu"] = float(device.startswith("cuda"))
 
+    if backbone is not None:
+        schedule = dict(epochs=cfg.epochs, learning_rate=cfg.learning_rate, weight_decay=cfg.weight_decay,
+                        lr_schedule=cfg.lr_schedule, full_passes=False)
+    else:  # the Pure NODE baseline, as the paper trains it
+        schedule = dict(epochs=cfg.node_epochs, learning_rate=cfg.node_learning_rate,
+                        weight_decay=cfg.node_weight_decay, lr_schedule="onecycle", full_passes=True)
+    epochs = schedule["epochs"]
+
     def progress(epoch, losses):
-        if epoch % 5 == 0 or epoch == cfg.epochs - 1:
-            est._emit("training", min(0.6, 0.05 + 0.55 * (epoch + 1) / cfg.epochs), epoch=epoch, losses=losses)
+        if epoch % 5 == 0 or epoch == epochs - 1:
+            est._emit("training", min(0.6, 0.05 + 0.55 * (epoch + 1) / epochs), epoch=epoch, losses=losses)
 
     try:
-        history = train_hybrid(field, train, smallsignal, epochs=cfg.epochs, window=cfg.window,
-                               batch_windows=cfg.batch_windows, learning_rate=cfg.learning_rate,
+        history = train_hybrid(field, train, smallsignal, window=cfg.window, batch_windows=cfg.batch_windows,
                                lambda_pert=lambda_pert, lambda_sparse=cfg.lambda_sparse if backbone else 0.0,
                                solver=cfg.solver, substeps=cfg.substeps, adjoint=cfg.adjoint, seed=cfg.seed,
                                state_scale=state_scale, callback=progress, should_stop=est._should_stop,
-                               device=device)
+                               device=device, **schedule)
     except StopRequested:
         raise IdentificationCancelled(f"{est.method}: cancelled during training") from None
     est.history_["training"] = history.to_dict()

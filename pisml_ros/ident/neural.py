@@ -144,7 +144,8 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
                  batch_windows: int, learning_rate: float, lambda_pert: float, lambda_sparse: float,
                  solver: str = "rk4", substeps: int = 2, adjoint: bool = False, seed: int = 0,
                  state_scale=None, callback: Callable | None = None,
-                 should_stop: Callable[[], bool] | None = None, device: str = "cpu") -> TrainingHistory:
+                 should_stop: Callable[[], bool] | None = None, device: str = "cpu",
+                 weight_decay: float = 0.0, lr_schedule: str = "cosine", full_passes: bool = False) -> TrainingHistory:
     """Train ``field`` (a HybridField) through torchdiffeq on windows of ``train``.
 
     Parameters
@@ -158,6 +159,14 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
     device : str
         torch device to train on (``cpu``, ``cuda``, ``cuda:1``, ...); the field is back on the
         CPU when this returns (or raises).
+    weight_decay : float
+        AdamW's decoupled weight decay of the network's parameters (Ξ gets none: it has the L1 term).
+    lr_schedule : {"cosine", "onecycle"}
+        Cosine annealing from ``learning_rate`` to 5 % of it, or torch's OneCycleLR peaking at
+        ``learning_rate`` (the paper's).
+    full_passes : bool
+        An epoch is a pass over every window in shuffled batches of ``batch_windows`` (the
+        paper's epochs), not one batch of them drawn at random; the schedule steps per batch.
     """
     torch = _torch()
     import torchdiffeq
@@ -180,8 +189,8 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
         return history
     field.to(device)
     try:
-        opt = torch.optim.Adam(params, lr=learning_rate)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=learning_rate * 0.05)
+        batches_per_epoch = -(-X.shape[0] // batch_windows) if full_passes else 1
+        opt, sched = optimiser(field, learning_rate, weight_decay, lr_schedule, epochs * batches_per_epoch)
         integrate = torchdiffeq.odeint_adjoint if adjoint else torchdiffeq.odeint
         options = {"step_size": dt / substeps} if solver in ("rk4", "euler", "midpoint") else None
         xi_scale = None
@@ -189,17 +198,14 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
             # ‖Ξ‖₁ on a common scale: each coefficient times its term's typical size over the state's scale
             theta = field.terms.evaluate(np.concatenate([xw.reshape(-1, xw.shape[-1]), uw.reshape(-1, uw.shape[-1])], 1))
             xi_scale = torch.as_tensor(np.abs(theta).mean(axis=0)[:, None] * dt / scale_np[None, :], device=device)
-        started = time.monotonic()
-        field.train()
-        for epoch in range(epochs):
-            if should_stop is not None and should_stop():
-                raise StopRequested()
-            batch = rng.choice(X.shape[0], size=min(batch_windows, X.shape[0]), replace=False)
+        kwargs = {"method": solver, "options": options} if options else {"method": solver, "rtol": 1e-6, "atol": 1e-8}
+        if adjoint:
+            kwargs["adjoint_params"] = tuple(params)
+
+        def step(batch):
+            """One optimiser step on the windows ``batch``: (trajectory, Jacobian, sparse) losses."""
             xb, ub = X[batch], U[batch]
             field.u_seq = ub
-            kwargs = {"method": solver, "options": options} if options else {"method": solver, "rtol": 1e-6, "atol": 1e-8}
-            if adjoint:
-                kwargs["adjoint_params"] = tuple(params)
             pred = integrate(field, xb[:, 0], t_grid, **kwargs)  # (window+1, batch, n)
             traj = torch.mean(((pred.transpose(0, 1) - xb) / scale) ** 2)
             loss = traj
@@ -222,10 +228,27 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
             torch.nn.utils.clip_grad_norm_(params, 10.0)
             opt.step()
             sched.step()
+            return float(traj.detach()), float(jac_loss.detach()), float(sparse.detach())
+
+        started = time.monotonic()
+        field.train()
+        n_windows = X.shape[0]
+        for epoch in range(epochs):
+            if should_stop is not None and should_stop():
+                raise StopRequested()
+            if full_passes:
+                order = rng.permutation(n_windows)
+                batches = [order[k:k + batch_windows] for k in range(0, n_windows, batch_windows)]
+            else:
+                batches = [rng.choice(n_windows, size=min(batch_windows, n_windows), replace=False)]
+            losses = np.array([step(batch) for batch in batches])
+            # an epoch's losses: the mean over its batches, each weighted by its windows
+            sizes = np.array([len(batch) for batch in batches], dtype=float)
+            traj, jac, sparse = (sizes @ losses) / sizes.sum()
             history.epochs.append(epoch)
-            history.trajectory_loss.append(float(traj.detach()))
-            history.jacobian_loss.append(float(jac_loss.detach()))
-            history.sparse_loss.append(float(sparse.detach()))
+            history.trajectory_loss.append(float(traj))
+            history.jacobian_loss.append(float(jac))
+            history.sparse_loss.append(float(sparse))
             if callback is not None:
                 callback(epoch, {"trajectory": history.trajectory_loss[-1], "jacobian": history.jacobian_loss[-1], "sparse": history.sparse_loss[-1]})
         field.eval()
@@ -234,6 +257,34 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
         field.u_seq = None
         field.to("cpu")
     return history
+
+
+def optimiser(field, learning_rate: float, weight_decay: float, lr_schedule: str, epochs: int):
+    """AdamW over ``field``'s trainable parameters and its learning-rate schedule (one step per epoch).
+
+    The network's parameters decay by ``weight_decay`` (decoupled, AdamW); the backbone's Ξ does
+    not (the L1 term is its regulariser, and a decay would shrink the physics coefficients). With
+    ``weight_decay`` 0 this is Adam. ``lr_schedule``: ``"cosine"`` anneals from ``learning_rate``
+    to 5 % of it, ``"onecycle"`` is torch's OneCycleLR peaking at ``learning_rate`` (the paper's).
+
+    Returns
+    -------
+    (torch.optim.AdamW, torch.optim.lr_scheduler.LRScheduler)
+    """
+    torch = _torch()
+    params = [p for p in field.parameters() if p.requires_grad]
+    network = [p for p in params if field.xi is None or p is not field.xi]
+    groups = [{"params": network, "weight_decay": weight_decay}]
+    if len(network) < len(params):
+        groups.append({"params": [field.xi], "weight_decay": 0.0})
+    opt = torch.optim.AdamW(groups, lr=learning_rate)
+    if lr_schedule == "onecycle":
+        sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=learning_rate, total_steps=epochs)
+    elif lr_schedule == "cosine":
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=learning_rate * 0.05)
+    else:
+        raise ValueError(f"lr_schedule must be cosine or onecycle, got {lr_schedule!r}")
+    return opt, sched
 
 
 def resolve_device(name: str) -> str:
