@@ -203,7 +203,6 @@ def test_backward_elimination_keeps_the_last_term_of_each_group():
     # first; with the equations as groups it stays, and only equation 0 loses a term
     rng = np.random.default_rng(5)
     a = rng.standard_normal((300, 2))
-    y0, y1 = a @ np.array([2.0, 1.0]), 1e-3 * a[:, 1]
     coef = np.array([[2.0, 0.0], [1.0, 1e-3]])  # (terms, equations): the least-squares fit
     support = np.array([0, 2, 3])  # flat (term, equation): a0 in eq 0, a1 in eq 0, a1 in eq 1
     block = a.T @ a

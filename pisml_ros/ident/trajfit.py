@@ -588,7 +588,7 @@ class _ShootingProblem:
             states, residuals, points = ([value[rows] for value in values] for values in kept[2:])
             cost = 0.5 * float(torch.stack(residuals).square().sum())
             return cost, self._tangent_blocks(c, X, u_all, states, residuals, points, "c" in tangents)
-        n, h, n_win, n_c = self.n, self.h, X.shape[0], self.idx.size
+        h = self.h
         x = X[:, 0] + z * self.x_unit
         w = self.res_weight
 
