@@ -343,7 +343,7 @@ def _microgrid_transient(args, config, build, microgrid, inputs) -> dict:
 
 def cmd_microgrid(args) -> int:
     from .analysis.microgrid import (MicrogridError, microgrid_from_config, microgrid_report, parameter_sweep,
-                                     read_microgrid_config)
+                                     read_microgrid_config, unit_other_equilibria_note)
     from .model import EquilibriumNotFound
     from .plant import EquilibriumError
 
@@ -402,6 +402,8 @@ def cmd_microgrid(args) -> int:
         line = (f"  unit {unit['name']} ({unit['kind']}) at bus {unit['bus']}: sees {unit['ug']:.4f} p.u., "
                 f"{unit['theta_g']:.4f} rad; delivers P {unit['p']:.4f}, Q {unit['q']:.4f} p.u.")
         print(line + (f"; {unit['note']}" if unit.get("note") else ""))
+        for note in unit_other_equilibria_note(unit):
+            print(f"    caution: {note}")
     print("  least-damped modes (share of each unit in the mode):")
     for mode in report["weakest_modes"]:
         re, im = mode["eigenvalue"]

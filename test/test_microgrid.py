@@ -139,6 +139,43 @@ def test_identified_equations_stand_in_for_the_plant():
     assert all(u["p"] == pytest.approx(0.5, abs=0.02) for u in report["units"])
 
 
+def test_an_identified_unit_with_a_second_equilibrium_at_its_bus_voltage_is_cautioned(tmp_path):
+    """A unit whose angle equation has two roots (δ = 0 stable, δ = 0.3 unstable, in its bus
+    voltage's frame) reports the other one, held at its bus voltage; a plant and the plant's exact
+    equations (one root there) report none."""
+    from pisml_ros.analysis.microgrid import unit_other_equilibria
+
+    states, inputs = ("delta", "ig_d", "ig_q"), ("ug", "theta_g")
+    terms = ["1", "delta", "delta**2", "ig_d", "ig_q"]
+    coefficients = np.array([[0.0, 5.0, 0.0],  # ig_d rests at 0.5
+                             [-10.0, 0.0, 0.0], [100.0 / 3.0, 0.0, 0.0],  # d(delta)/dt: roots 0 and 0.3
+                             [0.0, -10.0, 0.0], [0.0, 0.0, -10.0]])
+    toy = ExplicitModel(states, inputs, terms, coefficients,
+                        metadata={"reference_points": [{"inputs": [1.0, 0.0], "state": [0.0, 0.5, 0.0]},
+                                                       {"inputs": [1.0, 0.0], "state": [0.2, 0.5, 0.0]}]})
+    grid = Microgrid([Unit("toy", toy, "poc")], [Bus("poc", 0.01)], [Line("poc", "grid", 0.01, 0.05)])
+    x = grid.equilibrium(1.0, 0.0)
+    local, _ = grid._local(x, 0)
+    assert local[0] == pytest.approx(0.0, abs=1e-9)  # the stable root, in the bus frame
+    (other,) = unit_other_equilibria(grid, x, 0)
+    assert other["state"]["delta"] == pytest.approx(0.3, abs=1e-9) and other["distance"] == pytest.approx(0.3)
+    assert not other["stable"] and other["max_real"] == pytest.approx(10.0) and other["differs_most"][0] == "delta"
+    report = microgrid_report(grid, 1.0, 0.0)
+    assert report["units"][0]["other_equilibria"][0]["state"]["delta"] == pytest.approx(0.3)
+    path = toy.save(tmp_path / "toy.json")
+    config = tmp_path / "toy.yaml"
+    config.write_text(f"buses: [{{name: poc, capacitance: 0.01}}]\nlines: [{{from: poc, to: grid, r: 0.01, x: 0.05}}]\n"
+                      f"units: [{{name: toy, bus: poc, model: {path}}}]\n")
+    text = pisml("microgrid", "--config", config).stdout
+    assert ("caution: held at the voltage of its bus, the unit has another equilibrium 0.3 away in state (most in "
+            "delta") in text and "unstable (largest real part +10 1/s)" in text
+    plant = InverterPlant()
+    for system in (plant, plant_as_explicit_model(plant)):
+        grid = Microgrid([Unit("target", system, "poc")], [Bus("poc", 0.01)], [Line("poc", "grid", 0.01, 0.05)])
+        assert "other_equilibria" not in microgrid_report(grid, 1.0, 0.0)["units"][0]
+        assert unit_other_equilibria(grid, grid.equilibrium(1.0, 0.0), 0) == (None if system is plant else [])
+
+
 def test_modes_faster_than_an_identified_units_records_are_noted():
     """A network resonance above a quarter of an identified unit's sample rate, with the unit's
     share in it, carries a caution; slower modes and units without a recorded sample period

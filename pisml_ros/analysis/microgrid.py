@@ -783,13 +783,50 @@ def parameter_sweep(config: dict, path: str, values, base_dir=".", loaded: dict 
     return {"parameter": path, "points": points, "boundaries": boundaries}
 
 
+def unit_other_equilibria(microgrid: Microgrid, x, k: int) -> list | None:
+    """Unit ``k``'s other equilibria with the voltage of its bus held where it is at the microgrid
+    state ``x`` (:func:`~.operating_point.other_equilibria`, in the frame of its bus voltage),
+    nearest first; None where the unit cannot say (no stored rest states: a plant) or where ``x`` is
+    no equilibrium of the unit alone (islanded at a frequency other than the grid's, which an
+    identified unit's angle equation was fitted against).
+
+    An identified model can have a second equilibrium near a fold of its own (stop 52: protocol
+    recording 7 at 40 dB, 0.066 away at ug 1.2, unstable). The microgrid's own equilibria are not
+    searched: an assembled microgrid has no rest states to start from, and a unit held at its bus
+    voltage is the stiff-bus view of the same question.
+    """
+    from ..equilibrium import residual_below
+    from .operating_point import other_equilibria
+
+    system = microgrid.units[k].system
+    if not callable(getattr(system, "other_equilibria", None)):
+        return None
+    local, inputs = microgrid._local(x, k)
+    own = root(system.vector_field, system.jacobian, inputs, local,
+               residual_below(system.vector_field, 1e-9, system.residual_scale()))
+    if own is None or np.linalg.norm(own - local) > 1e-6 * (1.0 + np.linalg.norm(local)):
+        return None
+    return other_equilibria(system, inputs, own, microgrid.units[k].state_names)
+
+
+def unit_other_equilibria_note(entry: dict) -> list:
+    """Lines on a unit entry's ``other_equilibria`` (:func:`microgrid_report`), one per equilibrium."""
+    return [f"held at the voltage of its bus, the unit has another equilibrium {item['distance']:.3g} away in state "
+            f"(most in {', '.join(item['differs_most'])}), {'stable' if item['stable'] else 'unstable'} (largest real "
+            f"part {item['max_real']:+.4g} 1/s): the microgrid's operating point is the one found from its "
+            f"initial guess, and which one the unit sits at depends on how it got there"
+            for item in entry.get("other_equilibria") or []]
+
+
 def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0, modes: int = 3) -> dict:
     """The microgrid's operating point and modes
     (:func:`~pisml_ros.analysis.operating_point.operating_point_report`), plus per unit the bus
     voltage it sees and whether an identified unit was fitted on such voltages, the ``modes``
     least-damped modes with each unit's share in them, and where identified units carry their
     coefficients' covariance, how far their data pin the microgrid's verdict (``uncertainty``, as
-    ``pisml analyse`` has it for one model; :meth:`Microgrid.max_real_std`). JSON-ready."""
+    ``pisml analyse`` has it for one model; :meth:`Microgrid.max_real_std`), and an identified
+    unit's other equilibria at its bus voltage (``other_equilibria``, :func:`unit_other_equilibria`).
+    JSON-ready."""
     from .operating_point import analyse_operating_point, bandwidth_note, coverage_note, data_coverage
 
     report, x, summary = analyse_operating_point(microgrid, ug, theta_g)
@@ -810,6 +847,9 @@ def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0
             note = coverage_note(coverage)
             if note:
                 entry["note"] = note
+        others = unit_other_equilibria(microgrid, x, k)
+        if others:
+            entry["other_equilibria"] = others
         units.append(entry)
     report["units"] = units
     report["islanded"] = microgrid.islanded

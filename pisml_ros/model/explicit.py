@@ -101,9 +101,9 @@ class ExplicitModel:
             raise ValueError(f"equilibrium needs {len(self.input_names)} input values {self.input_names}, got {inputs}")
         refs = self.metadata.get("reference_points") or [{"inputs": u.tolist(), "state": [0.0] * self.n_states}]
         return find_equilibrium(self.vector_field, self.jacobian, u, refs, x0=x0, tol=tol,
-                                scale=self._residual_scale(), what="model")
+                                scale=self.residual_scale(), what="model")
 
-    def _residual_scale(self) -> np.ndarray:
+    def residual_scale(self) -> np.ndarray:
         """Each equation's size (the sum of its coefficients' magnitudes, at least 1): what a root's
         residual is measured against."""
         return np.maximum(np.abs(self.coefficients).sum(axis=0), 1.0)
@@ -128,7 +128,7 @@ class ExplicitModel:
         width = np.maximum(states.max(axis=0) - states.min(axis=0), 0.1)
         return distinct_roots(self.vector_field, self.jacobian, inputs, states, known=[x],
                               box=(states.min(axis=0) - width, states.max(axis=0) + width), tol=tol,
-                              scale=self._residual_scale())
+                              scale=self.residual_scale())
 
     def eigenvalues(self, *inputs: float) -> np.ndarray:
         """Eigenvalues (1/s) at the equilibrium for the given inputs."""
