@@ -811,11 +811,11 @@ def unit_other_equilibria(microgrid: Microgrid, x, k: int) -> list | None:
 
 def unit_other_equilibria_note(entry: dict) -> list:
     """Lines on a unit entry's ``other_equilibria`` (:func:`microgrid_report`), one per equilibrium."""
-    return [f"held at the voltage of its bus, the unit has another equilibrium {item['distance']:.3g} away in state "
-            f"(most in {', '.join(item['differs_most'])}), {'stable' if item['stable'] else 'unstable'} (largest real "
-            f"part {item['max_real']:+.4g} 1/s): the microgrid's operating point is the one found from its "
-            f"initial guess, and which one the unit sits at depends on how it got there"
-            for item in entry.get("other_equilibria") or []]
+    from .operating_point import other_equilibria_note
+
+    return other_equilibria_note(entry, "held at the voltage of its bus, the unit has another equilibrium",
+                                 "the microgrid's operating point is the one found from its initial guess, and "
+                                 "which one the unit sits at")
 
 
 def microgrid_report(microgrid: Microgrid, ug: float = 1.0, theta_g: float = 0.0, modes: int = 3) -> dict:

@@ -77,12 +77,15 @@ def other_equilibria(system, inputs, x, names) -> list | None:
     return sorted(out, key=lambda item: item["distance"])
 
 
-def other_equilibria_note(report: dict) -> list:
-    """Lines on ``report["other_equilibria"]`` (:func:`operating_point_report`), one per equilibrium."""
-    return [f"another equilibrium of the model {item['distance']:.3g} away in state (most in "
-            f"{', '.join(item['differs_most'])}), {'stable' if item['stable'] else 'unstable'} (largest real part "
-            f"{item['max_real']:+.4g} 1/s): the report is for the one followed from the records' rest states, and "
-            f"which one the inverter sits at depends on how it got there"
+def other_equilibria_note(report: dict, found: str = "another equilibrium of the model",
+                          which: str = "the report is for the one followed from the records' rest states, and "
+                                       "which one the inverter sits at") -> list:
+    """Lines on ``report["other_equilibria"]`` (:func:`operating_point_report`; a microgrid report's
+    unit entry), one per equilibrium: ``found``, where it is and how stable, then ``which`` (the
+    one reported) "depends on how it got there"."""
+    return [f"{found} {item['distance']:.3g} away in state (most in {', '.join(item['differs_most'])}), "
+            f"{'stable' if item['stable'] else 'unstable'} (largest real part {item['max_real']:+.4g} 1/s): "
+            f"{which} depends on how it got there"
             for item in report.get("other_equilibria") or []]
 
 
