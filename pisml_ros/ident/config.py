@@ -93,7 +93,7 @@ class IdentConfig:
     # at node_learning_rate, node_epochs passes over every training window (an epoch of PISML's
     # residual above is one batch), the weight decay of the paper's PISML row (none given for NODE).
     # Measured (stop 53, the benchmark's standard plant): clean IOD / OOD 6.89 / 31.4 %, 40 dB
-    # 9.89 / 35.8 %, ~23 s (before, 60 batches at 1e-3 in ~2 s: 36.3 / 54.0 %, 17.7 / 50.6 %)
+    # 9.89 / 35.8 %, 13-19 s (before, 60 batches at 1e-3 in ~2 s: 36.3 / 54.0 %, 17.7 / 50.6 %)
     node_epochs: int = 50
     node_learning_rate: float = 0.005
     node_weight_decay: float = 1e-3

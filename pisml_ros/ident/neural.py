@@ -259,8 +259,9 @@ def train_hybrid(field, train: Dataset, smallsignal: Dataset | None, *, epochs: 
     return history
 
 
-def optimiser(field, learning_rate: float, weight_decay: float, lr_schedule: str, epochs: int):
-    """AdamW over ``field``'s trainable parameters and its learning-rate schedule (one step per epoch).
+def optimiser(field, learning_rate: float, weight_decay: float, lr_schedule: str, steps: int):
+    """AdamW over ``field``'s trainable parameters and its learning-rate schedule over ``steps``
+    optimiser steps (the scheduler steps with the optimiser).
 
     The network's parameters decay by ``weight_decay`` (decoupled, AdamW); the backbone's Ξ does
     not (the L1 term is its regulariser, and a decay would shrink the physics coefficients). With
@@ -279,9 +280,9 @@ def optimiser(field, learning_rate: float, weight_decay: float, lr_schedule: str
         groups.append({"params": [field.xi], "weight_decay": 0.0})
     opt = torch.optim.AdamW(groups, lr=learning_rate)
     if lr_schedule == "onecycle":
-        sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=learning_rate, total_steps=epochs)
+        sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=learning_rate, total_steps=steps)
     elif lr_schedule == "cosine":
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=learning_rate * 0.05)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps, eta_min=learning_rate * 0.05)
     else:
         raise ValueError(f"lr_schedule must be cosine or onecycle, got {lr_schedule!r}")
     return opt, sched
