@@ -67,7 +67,8 @@ def integrator_row_mask(terms: Sequence[str], state_names: Sequence[str], signal
     rows = [list(state_names).index(s) for s in roles.integrators if s in state_names]
     for k, term in enumerate(terms):
         _, expr = parse_term(term, signals).as_coeff_Mul()
-        if rows and not (expr.is_number or expr.is_Symbol):
+        # a limited reference (ident.limiter) is what an integrator behind the limit integrates
+        if rows and not (expr.is_number or expr.is_Symbol or expr.has(sympy.Min, sympy.Max)):
             mask[k, rows] = False
     return mask
 
@@ -223,7 +224,14 @@ def monomial_basis(terms: Sequence[str], signals: Sequence[str]) -> tuple[list[s
     basis: list = []
     rows = []
     for text in terms:
-        expr = sympy.expand(parse_term(text, signals))
+        parsed = parse_term(text, signals)
+        if parsed.has(sympy.Min, sympy.Max):
+            # a limiter term stays whole: expanded, its argument would repeat in every monomial
+            if text not in basis:
+                basis.append(text)
+            rows.append({text: 1.0})
+            continue
+        expr = sympy.expand(parsed)
         row = {}
         for part in sympy.Add.make_args(expr):
             coeff, rest = part.as_coeff_Mul()

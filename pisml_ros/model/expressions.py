@@ -100,7 +100,29 @@ def _torch_module():
 
     return {name: numeric(fn) for name, fn in (
         ("sin", torch.sin), ("cos", torch.cos), ("exp", torch.exp), ("tanh", torch.tanh), ("sqrt", torch.sqrt),
-        ("Abs", torch.abs), ("sign", torch.sign), ("Min", torch.minimum), ("Max", torch.maximum))}
+        ("Abs", torch.abs), ("sign", torch.sign), ("Min", torch.minimum), ("Max", torch.maximum),
+        (_STEP.__name__, _step))}
+
+
+def _step(x, at_zero=0.5):
+    """sympy's Heaviside for tensors (the derivative of a Min or Max: a limiter term's)."""
+    import torch
+
+    return torch.where(x > 0, 1.0, torch.where(x < 0, 0.0, at_zero)).to(x.dtype)
+
+
+#: stands in for Heaviside in torch code: sympy's printer writes Heaviside as a Python branch,
+#: which runs on one number, not on a batch of rows
+_STEP = sympy.Function("heaviside_step")
+
+
+def _lambdify_torch(symbols, exprs):
+    """``sympy.lambdify`` of ``exprs`` (an expression or a list) for torch tensors, Heaviside included."""
+    def tensor_friendly(e):
+        return e.replace(sympy.Heaviside, _STEP) if isinstance(e, sympy.Basic) and e.has(sympy.Heaviside) else e
+
+    exprs = [tensor_friendly(e) for e in exprs] if isinstance(exprs, (list, tuple)) else tensor_friendly(exprs)
+    return sympy.lambdify(symbols, exprs, modules=[_torch_module(), "math"], cse=True)
 
 
 class TermSet:
@@ -222,7 +244,7 @@ class TermSet:
         if self._torch_plan():
             return self._gathered(self._factor_base(z)).prod(dim=-1)
         if self._torch is None:
-            self._torch = sympy.lambdify(self._symbols, self.exprs, modules=[_torch_module(), "math"], cse=True)
+            self._torch = _lambdify_torch(self._symbols, self.exprs)
         cols = self._torch(*z.unbind(-1))
         return torch.stack([_column(c, z) for c in cols], dim=-1)
 
@@ -280,7 +302,7 @@ class TermSet:
                 self._plan = False
             else:
                 others, index = layout
-                fn = sympy.lambdify(self._symbols, others, modules=[_torch_module(), "math"], cse=True) \
+                fn = _lambdify_torch(self._symbols, others) \
                     if others else None
                 self._plan = (fn, torch.as_tensor(index))
                 self._factors = list(self._symbols) + others  # the base's entries, for :meth:`gradient_torch`
@@ -374,8 +396,7 @@ class TermSet:
                         constant[t, s] = float(d)
                     else:
                         varying.append((t, s, d))
-            fn = sympy.lambdify(self._symbols, [d for _, _, d in varying], modules=[_torch_module(), "math"],
-                                cse=True) if varying else None
+            fn = _lambdify_torch(self._symbols, [d for _, _, d in varying]) if varying else None
             if fn is not None and not _runs_on_rows(lambda z: fn(*z.unbind(-1)), len(self.signals)):
                 self._jacobian_plans[key] = False
                 return False
@@ -490,8 +511,7 @@ def _entries_torch(entries, symbols):
                 table[i, k] = float(entry)
             else:
                 varying.append((i, k, entry))
-    fn = sympy.lambdify(symbols, [e for _, _, e in varying], modules=[_torch_module(), "math"],
-                        cse=True) if varying else None
+    fn = _lambdify_torch(symbols, [e for _, _, e in varying]) if varying else None
     constants = torch.as_tensor(table)
     where = (torch.tensor([i for i, _, _ in varying], dtype=torch.long),
              torch.tensor([k for _, k, _ in varying], dtype=torch.long))
