@@ -134,7 +134,8 @@ class _WindowIntegrals:
 
 def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span: int = 20,
                         min_reduction: float = 0.05, min_saturated: int = 10,
-                        percentiles=(90.0, 95.0, 99.0), max_nfev: int = 60) -> MagnitudeLimit | None:
+                        percentiles=(90.0, 99.0), max_nfev: int = 40, sparse_threshold: float = 0.01,
+                        sparse_loss: float = 0.02) -> MagnitudeLimit | None:
     """Fit the magnitude limit of a dq reference to the records (module docstring), or None where
     no pairing of the roles' integrators and currents shows one.
 
@@ -150,13 +151,14 @@ def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span
         Least share of the whitened misfit the limit must remove.
     min_saturated : int
         Least number of samples where it must act.
+    sparse_threshold : float
+        ℓ's terms whose share of its spread is below this are dropped and the rest re-fitted, where
+        that raises the misfit left by at most the fraction ``sparse_loss`` (0: ℓ keeps every state).
 
     Returns
     -------
     MagnitudeLimit or None
     """
-    import scipy.optimize
-
     roles = roles or SignalRoles()
     names = list(dataset.state_names)
     signals = names + list(dataset.input_names)
@@ -176,47 +178,83 @@ def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span
     for pair in integrator_pairs:
         keep = [k for k, s in enumerate(names) if s not in pair and s != roles.angle]
         a = np.column_stack([np.ones(len(x)), x[:, keep]])
-        a_int = windows(a)
         for measured in currents:
-            y_int = windows.increments(dataset, [names.index(s) for s in pair]) + \
-                windows(x[:, [names.index(s) for s in measured]])
-            # the loop's own current rows see the limit through the PI's proportional part
-            y_free = windows.increments(dataset, [names.index(s) for s in measured])
-            linear, *_ = np.linalg.lstsq(theta_int, y_free, rcond=None)
-            w_free = 1.0 / np.maximum((y_free - theta_int @ linear).std(axis=0), 1e-300)
-            w0, *_ = np.linalg.lstsq(a_int, y_int, rcond=None)
-            w_int = 1.0 / np.maximum((y_int - a_int @ w0).std(axis=0), 1e-300)
-
-            def limited(p):
-                ref = a @ p[:-1].reshape(-1, 2)
-                magnitude = np.hypot(ref[:, 0], ref[:, 1])
-                return ref * np.minimum(1.0, p[-1] / np.maximum(magnitude, 1e-300))[:, None], magnitude
-
-            def residuals(p):
-                s_int = windows(limited(p)[0])
-                features = np.column_stack([theta_int, s_int])
-                c, *_ = np.linalg.lstsq(features, y_free, rcond=None)
-                return np.concatenate([((y_int - s_int) * w_int).ravel(), ((y_free - features @ c) * w_free).ravel()])
-
-            without = float(np.sum(residuals(np.r_[w0.ravel(), np.inf]) ** 2))
-            magnitude0 = np.hypot(*(a @ w0).T)
+            problem = _LimitProblem(dataset, windows, theta_int, a, names, pair, measured)
             for q in percentiles:
-                p0 = np.r_[w0.ravel(), np.percentile(magnitude0, q)]
-                try:
-                    sol = scipy.optimize.least_squares(residuals, p0, method="trf", x_scale="jac", max_nfev=max_nfev)
-                except (ValueError, np.linalg.LinAlgError):
-                    continue
-                if not (np.all(np.isfinite(sol.x)) and sol.x[-1] > 0):
-                    continue
-                saturated = int(np.sum(limited(sol.x)[1] > sol.x[-1]))
-                reduction = 1.0 - 2.0 * sol.cost / without
-                if saturated >= min_saturated and reduction >= min_reduction and \
-                        (best is None or reduction > best[0]):
-                    best = (reduction, pair, measured, keep, sol.x, saturated)
+                fitted = problem.fit(problem.start(q), max_nfev=max_nfev)
+                if fitted is not None and fitted[2] >= min_saturated and fitted[1] >= min_reduction and \
+                        (best is None or fitted[1] > best[0][1]):
+                    best = (fitted, problem, keep)
     if best is None:
         return None
-    reduction, pair, measured, keep, p, saturated = best
+    (p, reduction, saturated), problem, keep = best
+    if sparse_threshold > 0:
+        # the reference's small parts out (each axis' terms below sparse_threshold of its spread), re-fitted
+        coef = p[:-1].reshape(-1, 2)
+        share = np.abs(coef) * problem.a.std(axis=0)[:, None] / np.maximum((problem.a @ coef).std(axis=0), 1e-300)
+        free = share >= sparse_threshold
+        free[0] = True  # the constant
+        sparse = problem.fit(np.r_[np.where(free, coef, 0.0).ravel(), p[-1]], max_nfev=max_nfev, free=free.ravel())
+        if sparse is not None and 1.0 - sparse[1] <= (1.0 + sparse_loss) * (1.0 - reduction) and sparse[2] >= min_saturated:
+            p, reduction, saturated = sparse
     coef = p[:-1].reshape(-1, 2)
-    argument = {axis: {name: float(value) for name, value in zip(["1", *[names[k] for k in keep]], coef[:, j])}
+    argument = {axis: {name: float(value) for name, value in zip(["1", *[names[k] for k in keep]], coef[:, j])
+                       if value != 0}
                 for j, axis in enumerate("dq")}
-    return MagnitudeLimit(tuple(pair), tuple(measured), argument, float(p[-1]), saturated / len(x), float(reduction))
+    return MagnitudeLimit(problem.pair, problem.measured, argument, float(p[-1]), saturated / len(x), float(reduction))
+
+
+class _LimitProblem:
+    """The least-squares problem of one pairing (integrator pair, the current pair its loop controls):
+    parameters ℓ's coefficients over ``a``'s columns (constant, states) for d and q, then m."""
+
+    def __init__(self, dataset, windows, theta_int, a, names, pair, measured):
+        self.pair, self.measured, self.a, self.windows, self.theta_int = tuple(pair), tuple(measured), a, windows, theta_int
+        self.y_int = windows.increments(dataset, [names.index(s) for s in pair]) + \
+            windows(np.concatenate([tr.x[:, [names.index(s) for s in measured]] for tr in dataset]))
+        # the loop's own current rows see the limit through the PI's proportional part
+        self.y_free = windows.increments(dataset, [names.index(s) for s in measured])
+        linear, *_ = np.linalg.lstsq(theta_int, self.y_free, rcond=None)
+        self.w_free = 1.0 / np.maximum((self.y_free - theta_int @ linear).std(axis=0), 1e-300)
+        self.a_int = windows(a)
+        self.w0, *_ = np.linalg.lstsq(self.a_int, self.y_int, rcond=None)
+        self.w_int = 1.0 / np.maximum((self.y_int - self.a_int @ self.w0).std(axis=0), 1e-300)
+        self.without = float(np.sum(self.residuals(np.r_[self.w0.ravel(), np.inf]) ** 2))
+
+    def limited(self, p):
+        ref = self.a @ p[:-1].reshape(-1, 2)
+        magnitude = np.hypot(ref[:, 0], ref[:, 1])
+        return ref * np.minimum(1.0, p[-1] / np.maximum(magnitude, 1e-300))[:, None], magnitude
+
+    def residuals(self, p):
+        s_int = self.windows(self.limited(p)[0])
+        features = np.column_stack([self.theta_int, s_int])
+        c, *_ = np.linalg.lstsq(features, self.y_free, rcond=None)
+        return np.concatenate([((self.y_int - s_int) * self.w_int).ravel(),
+                               ((self.y_free - features @ c) * self.w_free).ravel()])
+
+    def start(self, percentile: float) -> np.ndarray:
+        """ℓ from the integrator rows' linear fit, m at a percentile of its magnitude."""
+        return np.r_[self.w0.ravel(), np.percentile(np.hypot(*(self.a @ self.w0).T), percentile)]
+
+    def fit(self, p0, max_nfev: int, free=None):
+        """(parameters, share of the misfit removed, samples where the limit acts), or None where the
+        fit fails; ``free`` (bool over ℓ's coefficients) holds the others at ``p0``'s values."""
+        import scipy.optimize
+
+        free = np.r_[np.ones(len(p0) - 1, dtype=bool) if free is None else free, True]
+
+        def residuals(v):
+            p = p0.copy()
+            p[free] = v
+            return self.residuals(p)
+
+        try:
+            sol = scipy.optimize.least_squares(residuals, p0[free], method="trf", x_scale="jac", max_nfev=max_nfev)
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        p = p0.copy()
+        p[free] = sol.x
+        if not (np.all(np.isfinite(p)) and p[-1] > 0):
+            return None
+        return p, 1.0 - 2.0 * sol.cost / self.without, int(np.sum(self.limited(p)[1] > p[-1]))

@@ -59,8 +59,14 @@ class ExplicitModel:
 
     @property
     def n_parameters(self) -> int:
-        """Nonzero coefficients."""
-        return int(np.count_nonzero(self.coefficients))
+        """Nonzero coefficients, plus the distinct numbers written inside the terms in use (a fitted
+        limiter's reference and limit, :mod:`pisml_ros.ident.limiter`): fitted to the data too."""
+        used = np.any(self.coefficients != 0, axis=1)
+        inside = set()
+        for expr, keep in zip(self._terms.exprs, used):
+            if keep:
+                inside |= expr.atoms(sympy.Float)
+        return int(np.count_nonzero(self.coefficients)) + len(inside)
 
     def _stack(self, x, u):
         x = np.asarray(x, dtype=float)

@@ -1,0 +1,111 @@
+"""The magnitude limit of a dq reference found in the records (pisml_ros.ident.limiter) and what its
+terms need from the rest of the engine: torch gradients through Min, monomial basis, integrator rows,
+parameter count."""
+import numpy as np
+import pytest
+
+from pisml_ros.ident import SignalRoles
+from pisml_ros.ident.library import integrator_row_mask, monomial_basis
+from pisml_ros.ident.limiter import fit_magnitude_limit, is_limiter_term, limiter_terms
+from pisml_ros.model import ExplicitModel
+from pisml_ros.model.expressions import TermSet
+from pisml_ros.plant import InverterPlant
+from pisml_ros.plant.scenarios import generate, training_schedules
+from pisml_ros.signals import INPUT_NAMES, STATE_NAMES
+
+SIGNALS = list(STATE_NAMES) + list(INPUT_NAMES)
+IMAX = 2.2
+
+
+def _records(effects, n_traj=12, seed=0):
+    plant = InverterPlant(effects=effects or None)
+    return plant, generate(plant, training_schedules(n_traj, seed, 0.04), 0.04)
+
+
+def test_limiter_terms_scale_the_reference_down_to_its_limit_and_differentiate_in_numpy_and_torch():
+    import torch
+
+    terms = limiter_terms({"1": 0.5, "il_d": 2.0}, {"vc_q": -1.5}, 1.2)
+    assert all(is_limiter_term(t, SIGNALS) for t in terms) and not is_limiter_term("il_d*vc_q", SIGNALS)
+    ts = TermSet(terms, SIGNALS)
+    rng = np.random.default_rng(0)
+    z = rng.normal(scale=0.8, size=(64, len(SIGNALS)))
+    ld = 0.5 + 2.0 * z[:, SIGNALS.index("il_d")]
+    lq = -1.5 * z[:, SIGNALS.index("vc_q")]
+    scale = np.minimum(1.0, 1.2 / np.hypot(ld, lq))
+    assert 0 < np.mean(scale < 1) < 1  # both sides of the limit
+    np.testing.assert_allclose(ts.evaluate(z), np.column_stack([ld * scale, lq * scale]), rtol=1e-6)
+    assert np.all(np.hypot(*ts.evaluate(z).T) <= 1.2 + 1e-6)
+    # sympy writes the derivative of Min with Heaviside: torch's code must run on a batch of rows
+    values, grad = ts.values_and_gradient_torch(torch.as_tensor(z))
+    np.testing.assert_allclose(grad.numpy(), ts.gradient(z), rtol=1e-9, atol=1e-12)
+    step = 1e-7
+    k = SIGNALS.index("il_d")
+    moved = z.copy()
+    moved[:, k] += step
+    np.testing.assert_allclose((ts.evaluate(moved) - ts.evaluate(z)) / step, ts.gradient(z)[..., k], atol=1e-4)
+
+
+def test_limiter_terms_stay_whole_in_the_monomial_basis_enter_integrator_rows_and_count_their_constants():
+    terms = ["1", "il_d", "vc_d*ig_d + vc_q*ig_q", *limiter_terms({"1": 0.5, "il_d": 2.0}, {"vc_q": -1.5}, 1.2)]
+    basis, mapping = monomial_basis(terms, SIGNALS)
+    assert basis[-2:] == terms[-2:] and mapping[-1, -1] == 1.0
+    mask = integrator_row_mask(terms, STATE_NAMES, SIGNALS, SignalRoles())
+    gamma = list(STATE_NAMES).index("gamma_d")
+    assert list(mask[:, gamma]) == [True, True, False, True, True]
+    coef = np.zeros((len(terms), len(STATE_NAMES)))
+    coef[1, 0] = 1.0
+    assert ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, coef).n_parameters == 1
+    coef[3, gamma] = coef[4, gamma] = 1.0
+    # three coefficients, and the reference's three numbers and the limit, shared by both terms
+    assert ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, coef).n_parameters == 3 + 4
+
+
+@pytest.mark.slow
+def test_a_current_limit_is_found_in_the_records_where_it_acts_and_nowhere_else():
+    plant, records = _records({"current_limit": {"imax": IMAX}})
+    found = fit_magnitude_limit(records)
+    assert found is not None
+    assert found.integrators == ("gamma_d", "gamma_q") and found.measured == ("il_d", "il_q")
+    assert found.limit == pytest.approx(IMAX, rel=2e-3)
+    assert found.misfit_reduction > 0.99
+    # the limited reference, rebuilt from the terms alone, is the plant's
+    x = np.concatenate([tr.x for tr in records])
+    u = np.concatenate([tr.u for tr in records])
+    inside = plant.internal_signals(x, u)
+    limited = TermSet(found.terms(), SIGNALS).evaluate(np.concatenate([x, u], axis=1))
+    truth = np.column_stack([inside["ilref_d"], inside["ilref_q"]])
+    assert np.sqrt(np.mean((limited - truth) ** 2)) < 0.01 * np.sqrt(np.mean(truth ** 2))
+    assert found.saturated_fraction == pytest.approx(np.mean(np.hypot(inside["ilref_unlimited_d"],
+                                                                      inside["ilref_unlimited_q"]) > IMAX), abs=0.01)
+    assert found.to_dict()["terms"] == found.terms()
+    _, plain = _records({})
+    assert fit_magnitude_limit(plain) is None
+
+
+@pytest.mark.slow
+def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduces_the_saturated_tests():
+    import json
+
+    from pisml_ros.analysis.metrics import protocol_errors
+    from pisml_ros.ident import IdentConfig, make_estimator
+    from pisml_ros.plant.scenarios import evaluation_schedules, smallsignal_schedules
+
+    plant, records = _records({"current_limit": {"imax": IMAX}})
+    small = generate(plant, smallsignal_schedules(0.8), 0.1)
+    test = generate(plant, evaluation_schedules(0.04), 0.04)
+    fast = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
+            "distill_max_terms": 2}
+    model = make_estimator("pisml", IdentConfig.from_mapping(fast)).fit(records, small).explicit_model_
+    record = model.metadata["limiter"]
+    assert record["run"] and record["found"]
+    assert record["limit"]["limit"] == pytest.approx(IMAX, rel=2e-3)
+    assert model.metadata["selection"]["chosen"].endswith("with limit")
+    assert not any("far worse" in warning for warning in model.metadata["selection"]["warnings"])
+    assert sum("Min(" in t for t in model.terms) == 2
+    assert model.n_parameters > np.count_nonzero(model.coefficients)
+    # the phase jump and the sag to 0.4 p.u. both drive the plant into its limit (without the limit's
+    # terms: 10.2 / 62.5 % IOD / OOD in the benchmark), and the JSON alone rebuilds the model
+    again = ExplicitModel.from_dict(json.loads(model.to_json()))
+    errors = protocol_errors(again, test)
+    assert errors["iod"] < 0.5 and errors["ood"] < 2.0
