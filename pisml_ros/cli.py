@@ -113,6 +113,7 @@ def cmd_identify(args) -> int:
     from .analysis.operating_point import identified_input_range
     from .data import concat_datasets, read_dataset
     from .ident import METHODS, ConfigError, IdentConfig, make_estimator, selection_warnings, settings_from_assignments
+    from .ident.limiter import limit_note
 
     if args.method not in METHODS:
         raise UserError(f"--method {args.method}: choose one of {', '.join(METHODS)}")
@@ -158,8 +159,11 @@ def cmd_identify(args) -> int:
         {"data": [str(p) for p in args.data], "smallsignal": [str(p) for p in args.smallsignal or []],
          "metrics": {k: float(v) for k, v in est.metrics_.items()}})
     model.save(out)
-    print(f"{args.method}: {model.n_parameters} nonzero coefficients over {len(model.terms)} terms, "
-          f"{est.metrics_['seconds']:.1f} s; wrote {out}")
+    nonzero = int((model.coefficients != 0).sum())
+    inside = model.n_parameters - nonzero
+    print(f"{args.method}: {nonzero} nonzero coefficients over {len(model.terms)} terms"
+          + (f" and {inside} numbers inside its terms" if inside else "")
+          + f", {est.metrics_['seconds']:.1f} s; wrote {out}")
     covered = ", ".join(f"{name} {low:.4g}-{high:.4g}" for name, (low, high) in
                         (identified_input_range(model) or {}).items())
     selection = model.metadata.get("selection") or {}
@@ -174,6 +178,9 @@ def cmd_identify(args) -> int:
         print(f"  training records starting at rest: {resting} of {records}" + (
             "" if resting else " (constant inputs and still states before the first input change): the "
             "selection's equilibrium check and the stability prior rest on the small-signal records alone"))
+    note = limit_note(model)
+    if note:
+        print(f"  {note}")
     for warning in selection_warnings(model):
         print(f"  caution: {warning}")
     if args.equations:

@@ -6,7 +6,7 @@ import pytest
 
 from pisml_ros.ident import SignalRoles
 from pisml_ros.ident.library import integrator_row_mask, monomial_basis
-from pisml_ros.ident.limiter import fit_magnitude_limit, is_limiter_term, limiter_terms
+from pisml_ros.ident.limiter import fit_magnitude_limit, is_limiter_term, limit_note, limiter_terms
 from pisml_ros.model import ExplicitModel
 from pisml_ros.model.expressions import TermSet
 from pisml_ros.plant import InverterPlant
@@ -81,6 +81,7 @@ def test_a_current_limit_is_found_in_the_records_where_it_acts_and_nowhere_else(
     assert found.to_dict()["terms"] == found.terms()
     _, plain = _records({})
     assert fit_magnitude_limit(plain) is None
+    assert limit_note(ExplicitModel(STATE_NAMES, INPUT_NAMES, ["1"], np.ones((1, len(STATE_NAMES))))) is None
 
 
 @pytest.mark.slow
@@ -101,6 +102,9 @@ def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduc
     assert record["run"] and record["found"]
     assert record["limit"]["limit"] == pytest.approx(IMAX, rel=2e-3)
     assert model.metadata["selection"]["chosen"].endswith("with limit")
+    # what `pisml identify` prints and the identifier node logs
+    assert limit_note(model).startswith("a magnitude limit found in the records: gamma_d/gamma_q integrate a "
+                                        "reference limited to 2.2") and limit_note(model).endswith("the model uses it")
     assert not any("far worse" in warning for warning in model.metadata["selection"]["warnings"])
     assert sum("Min(" in t for t in model.terms) == 2
     assert model.n_parameters > np.count_nonzero(model.coefficients)

@@ -868,7 +868,8 @@ class PISML(_Estimator):
         from .limiter import fit_magnitude_limit
 
         cfg = self.config
-        chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold).metadata["selection"]["chosen"]
+        chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
+                                       hold).metadata["selection"]["chosen"]
         threshold = cfg.selection_warn_noise_ratio * floor + cfg.selection_warn_noise_margin
         record = {"selected_before": chosen, "error_pct": scores[chosen], "threshold_pct": threshold,
                   "run": bool(scores[chosen] > threshold)}

@@ -56,7 +56,8 @@ def integrator_row_mask(terms: Sequence[str], state_names: Sequence[str], signal
     with every term a spurious unstable mode at each ug from 0.4 to 1.1; with the frequency
     couplings kept (they are nearly collinear with the plain signals: the frequency state hardly
     moves), unstable at every ug; constant and plain signals only: 0.22 / 0.32 % IOD / OOD and
-    stable up to ug 1.0.
+    stable up to ug 1.0. A limiter's term (:mod:`.limiter`) is admitted: behind a current limit the
+    inner integrator integrates the limited reference.
 
     Returns
     -------
@@ -210,7 +211,8 @@ def term_degrees(terms: Sequence[str], signals: Sequence[str]) -> np.ndarray:
 
 
 def monomial_basis(terms: Sequence[str], signals: Sequence[str]) -> tuple[list[str], "sympy.Matrix"]:
-    """Split each term into monomials (products of signals and non-polynomial factors).
+    """Split each term into monomials (products of signals and non-polynomial factors); a limiter's
+    term (with ``Min`` or ``Max``, :mod:`.limiter`) stays whole.
 
     Returns
     -------

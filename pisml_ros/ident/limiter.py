@@ -195,7 +195,8 @@ def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span
         free = share >= sparse_threshold
         free[0] = True  # the constant
         sparse = problem.fit(np.r_[np.where(free, coef, 0.0).ravel(), p[-1]], max_nfev=max_nfev, free=free.ravel())
-        if sparse is not None and 1.0 - sparse[1] <= (1.0 + sparse_loss) * (1.0 - reduction) and sparse[2] >= min_saturated:
+        if sparse is not None and sparse[2] >= min_saturated and \
+                1.0 - sparse[1] <= (1.0 + sparse_loss) * (1.0 - reduction):
             p, reduction, saturated = sparse
     coef = p[:-1].reshape(-1, 2)
     argument = {axis: {name: float(value) for name, value in zip(["1", *[names[k] for k in keep]], coef[:, j])
@@ -209,7 +210,8 @@ class _LimitProblem:
     parameters ℓ's coefficients over ``a``'s columns (constant, states) for d and q, then m."""
 
     def __init__(self, dataset, windows, theta_int, a, names, pair, measured):
-        self.pair, self.measured, self.a, self.windows, self.theta_int = tuple(pair), tuple(measured), a, windows, theta_int
+        self.pair, self.measured = tuple(pair), tuple(measured)
+        self.a, self.windows, self.theta_int = a, windows, theta_int
         self.y_int = windows.increments(dataset, [names.index(s) for s in pair]) + \
             windows(np.concatenate([tr.x[:, [names.index(s) for s in measured]] for tr in dataset]))
         # the loop's own current rows see the limit through the PI's proportional part
@@ -258,3 +260,17 @@ class _LimitProblem:
         if not (np.all(np.isfinite(p)) and p[-1] > 0):
             return None
         return p, 1.0 - 2.0 * sol.cost / self.without, int(np.sum(self.limited(p)[1] > p[-1]))
+
+
+def limit_note(model) -> str | None:
+    """The magnitude limit the engine found in the records (``model.metadata["limiter"]``, from
+    ``PISML``), in words for a user, or None where none was searched for or found."""
+    record = (getattr(model, "metadata", None) or {}).get("limiter") or {}
+    if not record.get("found"):
+        return None
+    found = record["limit"]
+    used = any(term in model.terms for term in found["terms"])
+    return (f"a magnitude limit found in the records: {'/'.join(found['integrators'])} integrate a reference "
+            f"limited to {found['limit']:.4g} minus {'/'.join(found['measured'])}, the limit acting on "
+            f"{100 * found['saturated_fraction']:.1f} % of the samples; "
+            + ("the model uses it" if used else "the model chosen does not use it"))

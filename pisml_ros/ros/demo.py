@@ -432,15 +432,14 @@ def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool
                      out / "eigenvalues.png", title=f"eigenvalues at ug = 0.8: plant vs {final.model_id}")
     plot_spectra({f"model ug = {ug:g}": s[0] for ug, s in spectra.items()}, out / "eigenvalues_model.png",
                  title=f"{final.model_id}: eigenvalues at the analysed operating points")
-    plot_coefficients(model, out / "coefficients.png", title=f"{final.model_id}: {model.n_parameters} nonzero "
-                                                              f"coefficients")
+    plot_coefficients(model, out / "coefficients.png", title=f"{final.model_id}: {model.n_parameters} parameters")
     if locus:
         grid = np.array(locus["ug"])
         max_real = np.array([np.nan if v is None else v for v in locus["max_real"]])
         plot_stability_scan(grid, max_real, out / "stability_scan_model.png", locus["boundaries"])
 
     # ------------------------------------------------------------------ what the user reads
-    say(f"identified model {final.model_id}: {model.n_parameters} nonzero coefficients over {len(model.terms)} terms"
+    say(f"identified model {final.model_id}: {model.n_parameters} parameters over {len(model.terms)} terms"
         f" (full equations in {out / 'equations.txt'})")
     for line in model.equations(digits=4):
         n_terms = line.count(" + ") + line.count(" - ") + 1

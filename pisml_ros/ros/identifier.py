@@ -46,6 +46,7 @@ from ..data.dataset import records_at_rest  # noqa: E402
 from ..data.stream import TrajectoryBuffer  # noqa: E402
 from ..fileio import atomic_write_text, json_default  # noqa: E402
 from ..ident import IdentConfig, selection_warnings  # noqa: E402
+from ..ident.limiter import limit_note  # noqa: E402
 from ..ident.worker import IdentificationWorker, RunResult  # noqa: E402
 from ..model import ExplicitModel  # noqa: E402
 from .conversions import model_message, overrides_from_assignments, overrides_from_fields  # noqa: E402
@@ -250,6 +251,9 @@ class IdentifierNode(Node):
             self._save_history(result)
             self.get_logger().info(f"run {job.model_id} done in {time.monotonic() - started:.1f} s: {stage} model, "
                                    f"{job.result.n_parameters} parameters")
+            note = limit_note(result.model)
+            if note:
+                self.get_logger().info(f"run {job.model_id}: {note}")
             for warning in selection_warnings(result.model):
                 self.get_logger().warning(f"run {job.model_id}: caution: {warning}")
         elif result.status == "cancelled" or (job.should_stop() and result.status == "failed"):
