@@ -1128,6 +1128,16 @@ def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
                      hold=0.01).metadata["selection"]["chosen"] == "pruned +0.1 % x3"
     assert _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0, equilibrium_grid=grid,
                      hold=0.05).metadata["selection"]["chosen"] == "pruned +0.1 %"
+    # nor does a candidate far worse than the noise explains (above ratio x floor + margin) displace a
+    # choice within that: stop 54, a current limit's family at 4.0 % against a threshold of 4.1 %
+    # lost to a model at 10 % for its equilibria
+    scores["pruned +0.1 %"] = 0.3
+    assert _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0, equilibrium_grid=grid,
+                     noise_floor=0.05, noise_ratio=2.5, noise_margin=0.0).metadata["selection"]["chosen"] == \
+        "pruned +0.1 % x3"
+    assert _selected(template, candidates, scores, tolerance=0.5, unstable_rate=1.0, equilibrium_grid=grid,
+                     noise_floor=0.2, noise_ratio=2.5, noise_margin=0.0).metadata["selection"]["chosen"] == \
+        "pruned +0.1 %"
 
 
 def test_the_grid_stability_option_passes_over_a_sparser_model_unstable_where_the_best_is_stable():

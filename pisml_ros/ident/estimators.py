@@ -760,8 +760,12 @@ class PISML(_Estimator):
                 self._unrestricted_fallback(explicit, candidates, scores, verdicts, hold, starts,
                                             noise_floor if noisy else None, refine_from, add)
             if cfg.limiter_search:
-                self._limiter_family(explicit, candidates, scores, verdicts, hold, noise_floor, library, train,
-                                     scoring, refine_from, add)
+                try:
+                    self._limiter_family(explicit, candidates, scores, verdicts, hold, noise_floor, library, train,
+                                         scoring, refine_from, add)
+                except (ValueError, np.linalg.LinAlgError) as err:
+                    # a search that breaks down numerically costs its candidates, not the fit
+                    explicit.metadata.setdefault("limiter", {})["error"] = f"{type(err).__name__}: {err}"
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the records when run freely
         # from their rest states or first samples (refinement that made things worse is dropped), or
