@@ -863,11 +863,11 @@ class PISML(_Estimator):
         records' rest points first) are refined side by side (``… with limit``, ``… with limit from
         <start>``), and all join the candidates. Recorded in the metadata (``limiter``) and the metrics.
 
-        Measured (stop 54, the benchmark's saturation plant, current limit 2.2 p.u., recording 0,
-        scratch): with the limit's fitted terms in Θ_ext the clean fit went from 10.2 / 62.5 % IOD /
-        OOD to 0.028 / 0.25 %; at 40 dB the refinement from the chosen model with them, from 5.2 /
-        62.9 % to 0.68 / 4.5 % (with the plant's own reference and limit instead of the fitted ones:
-        0.36 / 1.07 %). On the default plant no fit is above the caution's threshold, so none runs it.
+        Measured (stop 54, `make bench`, the saturation plant, current limit 2.2 p.u.): clean from
+        10.2 / 62.5 % IOD / OOD to 0.0224 / 0.093 % (the re-fit with the limit won), 40 dB from
+        5.23 / 62.9 % to 1.48 / 5.46 % (the refinement from ``chosen plus limit``); with the plant's
+        own reference and limit instead of the fitted ones the refinement reaches 0.36 / 1.07 %
+        (scratch). On the default plant no fit is above the caution's threshold, so none runs it.
         """
         from .limiter import fit_magnitude_limit
 

@@ -42,6 +42,11 @@ def coupling_terms(roles: SignalRoles) -> list[str]:
     return [f"{roles.frequency}*{s}" for s in roles.dq_signals() if s != roles.frequency]
 
 
+def is_limited(expr: sympy.Expr) -> bool:
+    """Whether a parsed term is a limiter's (a ``Min`` or ``Max`` in it: :mod:`.limiter`)."""
+    return bool(expr.has(sympy.Min, sympy.Max))
+
+
 def integrator_row_mask(terms: Sequence[str], state_names: Sequence[str], signals: Sequence[str],
                         roles: SignalRoles):
     """Which (term, state) entries a model may use, with the controller integrators' equations kept
@@ -69,7 +74,7 @@ def integrator_row_mask(terms: Sequence[str], state_names: Sequence[str], signal
     for k, term in enumerate(terms):
         _, expr = parse_term(term, signals).as_coeff_Mul()
         # a limited reference (ident.limiter) is what an integrator behind the limit integrates
-        if rows and not (expr.is_number or expr.is_Symbol or expr.has(sympy.Min, sympy.Max)):
+        if rows and not (expr.is_number or expr.is_Symbol or is_limited(expr)):
             mask[k, rows] = False
     return mask
 
@@ -227,7 +232,7 @@ def monomial_basis(terms: Sequence[str], signals: Sequence[str]) -> tuple[list[s
     rows = []
     for text in terms:
         parsed = parse_term(text, signals)
-        if parsed.has(sympy.Min, sympy.Max):
+        if is_limited(parsed):
             # a limiter term stays whole: expanded, its argument would repeat in every monomial
             if text not in basis:
                 basis.append(text)
