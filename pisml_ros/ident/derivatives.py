@@ -46,11 +46,11 @@ def integral_form(dataset: Dataset, terms: TermSet, span: int = 10, stride: int 
         if quadrature == "spline":
             # piece k runs from one input jump to the next; each restarts its integral at 0
             piece = np.concatenate([[0], np.cumsum(input_jumps(tr.u))])
-            cum = np.concatenate([_cumulative_integral(theta[piece == k], tr.t[piece == k], quadrature)
+            cum = np.concatenate([cumulative_integral(theta[piece == k], tr.t[piece == k], quadrature)
                                   for k in range(piece[-1] + 1)])
             starts = starts[piece[starts + span] == piece[starts]]
         else:
-            cum = _cumulative_integral(theta, tr.t, quadrature)
+            cum = cumulative_integral(theta, tr.t, quadrature)
         rows_a.append(cum[starts + span] - cum[starts])
         rows_b.append(tr.x[starts + span] - tr.x[starts])
     return np.concatenate(rows_a), np.concatenate(rows_b)
@@ -66,7 +66,9 @@ def input_jumps(u: np.ndarray, factor: float = 20.0) -> np.ndarray:
     return np.any(change > np.maximum(factor * typical, 1e-12 * (1 + np.abs(u).max(axis=0))), axis=1)
 
 
-def _cumulative_integral(values: np.ndarray, t: np.ndarray, quadrature: str) -> np.ndarray:
+def cumulative_integral(values: np.ndarray, t: np.ndarray, quadrature: str = "trapezoid") -> np.ndarray:
+    """∫ from t[0] to each t of ``values`` (rows at the times ``t``), by the trapezoid rule or the
+    cubic interpolating spline (``quadrature`` as :func:`integral_form`'s)."""
     if len(t) > 3 and quadrature == "spline":
         from scipy.interpolate import make_interp_spline
 

@@ -39,6 +39,7 @@ import numpy as np
 
 from ..data import Dataset
 from ..model.expressions import parse_term, term_set
+from .derivatives import cumulative_integral, integral_form
 from .library import is_limited, physics_library
 from .roles import SignalRoles
 
@@ -105,30 +106,26 @@ def _pairs(names) -> list[tuple]:
 
 
 class _WindowIntegrals:
-    """∫ over windows of ``span`` samples (trapezoid rule, each record's own windows), of per-sample
-    values stacked over the records: the integral form of :func:`~.derivatives.integral_form`."""
+    """The windows of :func:`~.derivatives.integral_form` over ``span`` samples, every ``span // 2``
+    (trapezoid rule): Θ's integrals and the states' increments over them, and the integrals of any
+    per-sample values stacked over the records."""
 
-    def __init__(self, dataset: Dataset, span: int):
-        self.pieces = []
-        for tr in dataset:
-            n = len(tr)
-            starts = np.arange(0, max(n - span, 0), max(1, span // 2))
-            self.pieces.append((np.diff(tr.t), starts, n))
+    def __init__(self, dataset: Dataset, theta, span: int):
+        stride = max(1, span // 2)
+        self.theta, self._increments = integral_form(dataset, theta, span=span, stride=stride)
+        self.pieces = [(tr.t, np.arange(0, len(tr) - span, stride)) for tr in dataset]
         self.span = span
 
     def __call__(self, values: np.ndarray) -> np.ndarray:
         out, offset = [], 0
-        for steps, starts, n in self.pieces:
-            v = values[offset:offset + n]
-            offset += n
-            cumulative = np.concatenate([np.zeros((1, v.shape[1])),
-                                         np.cumsum((v[1:] + v[:-1]) / 2 * steps[:, None], axis=0)])
+        for t, starts in self.pieces:
+            cumulative = cumulative_integral(values[offset:offset + len(t)], t)
+            offset += len(t)
             out.append(cumulative[starts + self.span] - cumulative[starts])
         return np.concatenate(out)
 
-    def increments(self, dataset: Dataset, columns) -> np.ndarray:
-        return np.concatenate([tr.x[starts + self.span][:, columns] - tr.x[starts][:, columns]
-                               for tr, (_, starts, _) in zip(dataset, self.pieces)])
+    def increments(self, columns) -> np.ndarray:
+        return self._increments[:, columns]
 
 
 def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span: int = 20,
@@ -163,22 +160,21 @@ def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span
     signals = names + list(dataset.input_names)
     currents = [pair for pair in (tuple(roles.current), *map(tuple, roles.other_currents))
                 if all(s in names for s in pair)]
-    integrator_pairs = [pair for pair in _pairs([s for s in roles.integrators if s in names])]
+    integrator_pairs = _pairs([s for s in roles.integrators if s in names])
     if not currents or not integrator_pairs or len(dataset) == 0:
         return None
     if min(len(tr) for tr in dataset) <= span:
         return None
     x = np.concatenate([tr.x for tr in dataset])
     theta = term_set(physics_library(roles, names, coupling=True), signals)
-    windows = _WindowIntegrals(dataset, span)
-    theta_int = windows(np.concatenate([theta.evaluate(np.concatenate([tr.x, tr.u], axis=1)) for tr in dataset]))
+    windows = _WindowIntegrals(dataset, theta, span)
 
     best = None
     for pair in integrator_pairs:
         keep = [k for k, s in enumerate(names) if s not in pair and s != roles.angle]
         a = np.column_stack([np.ones(len(x)), x[:, keep]])
         for measured in currents:
-            problem = _LimitProblem(dataset, windows, theta_int, a, names, pair, measured)
+            problem = _LimitProblem(dataset, windows, a, names, pair, measured)
             for q in percentiles:
                 fitted = problem.fit(problem.start(q), max_nfev=max_nfev)
                 if fitted is not None and fitted[2] >= min_saturated and fitted[1] >= min_reduction and \
@@ -208,15 +204,15 @@ class _LimitProblem:
     """The least-squares problem of one pairing (integrator pair, the current pair its loop controls):
     parameters ℓ's coefficients over ``a``'s columns (constant, states) for d and q, then m."""
 
-    def __init__(self, dataset, windows, theta_int, a, names, pair, measured):
+    def __init__(self, dataset, windows, a, names, pair, measured):
         self.pair, self.measured = tuple(pair), tuple(measured)
-        self.a, self.windows, self.theta_int = a, windows, theta_int
-        self.y_int = windows.increments(dataset, [names.index(s) for s in pair]) + \
+        self.a, self.windows, self.theta_int = a, windows, windows.theta
+        self.y_int = windows.increments([names.index(s) for s in pair]) + \
             windows(np.concatenate([tr.x[:, [names.index(s) for s in measured]] for tr in dataset]))
         # the loop's own current rows see the limit through the PI's proportional part
-        self.y_free = windows.increments(dataset, [names.index(s) for s in measured])
-        linear, *_ = np.linalg.lstsq(theta_int, self.y_free, rcond=None)
-        self.w_free = 1.0 / np.maximum((self.y_free - theta_int @ linear).std(axis=0), 1e-300)
+        self.y_free = windows.increments([names.index(s) for s in measured])
+        linear, *_ = np.linalg.lstsq(self.theta_int, self.y_free, rcond=None)
+        self.w_free = 1.0 / np.maximum((self.y_free - self.theta_int @ linear).std(axis=0), 1e-300)
         self.a_int = windows(a)
         self.w0, *_ = np.linalg.lstsq(self.a_int, self.y_int, rcond=None)
         self.w_int = 1.0 / np.maximum((self.y_int - self.a_int @ self.w0).std(axis=0), 1e-300)
