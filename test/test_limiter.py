@@ -1,12 +1,12 @@
-"""The magnitude limit of a dq reference found in the records (pisml_ros.ident.limiter) and what its
-terms need from the rest of the engine: torch gradients through Min, monomial basis, integrator rows,
-parameter count."""
+"""The limit of a dq reference (its magnitude, or each axis) found in the records
+(pisml_ros.ident.limiter) and what its terms need from the rest of the engine: torch gradients
+through Min and Max, monomial basis, integrator rows, parameter count."""
 import numpy as np
 import pytest
 
 from pisml_ros.ident import SignalRoles
 from pisml_ros.ident.library import integrator_row_mask, monomial_basis
-from pisml_ros.ident.limiter import fit_magnitude_limit, is_limiter_term, limit_note, limiter_terms
+from pisml_ros.ident.limiter import fit_reference_limit, is_limiter_term, limit_note, limiter_terms
 from pisml_ros.model import ExplicitModel
 from pisml_ros.model.expressions import TermSet
 from pisml_ros.plant import InverterPlant
@@ -15,6 +15,10 @@ from pisml_ros.signals import INPUT_NAMES, STATE_NAMES
 
 SIGNALS = list(STATE_NAMES) + list(INPUT_NAMES)
 IMAX = 2.2
+CLAMP = (1.6, 2.4)
+# the plant's effect, the kind of limit that matches it, its limits
+LIMITS = [({"current_limit": {"imax": IMAX}}, "magnitude", (IMAX,)),
+          ({"current_clamp": {"imax_d": CLAMP[0], "imax_q": CLAMP[1]}}, "clamp", CLAMP)]
 
 
 def _records(effects, n_traj=12, seed=0):
@@ -22,21 +26,29 @@ def _records(effects, n_traj=12, seed=0):
     return plant, generate(plant, training_schedules(n_traj, seed, 0.04), 0.04)
 
 
-def test_limiter_terms_scale_the_reference_down_to_its_limit_and_differentiate_in_numpy_and_torch():
+@pytest.mark.parametrize("kind, limit", [("magnitude", 1.2), ("clamp", (1.2, 0.9))])
+def test_limiter_terms_limit_the_reference_and_differentiate_in_numpy_and_torch(kind, limit):
     import torch
 
-    terms = limiter_terms({"1": 0.5, "il_d": 2.0}, {"vc_q": -1.5}, 1.2)
+    terms = limiter_terms({"1": 0.5, "il_d": 2.0}, {"vc_q": -1.5}, limit, kind)
     assert all(is_limiter_term(t, SIGNALS) for t in terms) and not is_limiter_term("il_d*vc_q", SIGNALS)
     ts = TermSet(terms, SIGNALS)
     rng = np.random.default_rng(0)
     z = rng.normal(scale=0.8, size=(64, len(SIGNALS)))
     ld = 0.5 + 2.0 * z[:, SIGNALS.index("il_d")]
     lq = -1.5 * z[:, SIGNALS.index("vc_q")]
-    scale = np.minimum(1.0, 1.2 / np.hypot(ld, lq))
-    assert 0 < np.mean(scale < 1) < 1  # both sides of the limit
-    np.testing.assert_allclose(ts.evaluate(z), np.column_stack([ld * scale, lq * scale]), rtol=1e-6)
-    assert np.all(np.hypot(*ts.evaluate(z).T) <= 1.2 + 1e-6)
-    # sympy writes the derivative of Min with Heaviside: torch's code must run on a batch of rows
+    if kind == "magnitude":
+        scale = np.minimum(1.0, 1.2 / np.hypot(ld, lq))
+        assert 0 < np.mean(scale < 1) < 1  # both sides of the limit
+        np.testing.assert_allclose(ts.evaluate(z), np.column_stack([ld * scale, lq * scale]), rtol=1e-6)
+        assert np.all(np.hypot(*ts.evaluate(z).T) <= 1.2 + 1e-6)
+    else:
+        clipped = np.column_stack([np.clip(ld, -1.2, 1.2), np.clip(lq, -0.9, 0.9)])
+        assert 0 < np.mean(clipped[:, 0] != ld) < 1 and 0 < np.mean(clipped[:, 1] != lq) < 1
+        np.testing.assert_allclose(ts.evaluate(z), clipped, rtol=1e-6)
+    with pytest.raises(ValueError, match="limiter kind 'box'"):
+        limiter_terms({"1": 0.5}, {"1": 0.5}, 1.0, "box")
+    # sympy writes the derivatives of Min and Max with Heaviside: torch's code must run on a batch of rows
     values, grad = ts.values_and_gradient_torch(torch.as_tensor(z))
     np.testing.assert_allclose(grad.numpy(), ts.gradient(z), rtol=1e-9, atol=1e-12)
     step = 1e-7
@@ -59,15 +71,19 @@ def test_limiter_terms_stay_whole_in_the_monomial_basis_enter_integrator_rows_an
     coef[3, gamma] = coef[4, gamma] = 1.0
     # three coefficients, and the reference's three numbers and the limit, shared by both terms
     assert ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, coef).n_parameters == 3 + 4
+    # a clamp: the reference's three numbers and one limit per axis (its −m and m are one number)
+    terms[-2:] = limiter_terms({"1": 0.5, "il_d": 2.0}, {"vc_q": -1.5}, (1.2, 0.9), "clamp")
+    assert ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, coef).n_parameters == 3 + 5
 
 
 @pytest.mark.slow
-def test_a_current_limit_is_found_in_the_records_where_it_acts_and_nowhere_else():
-    plant, records = _records({"current_limit": {"imax": IMAX}})
-    found = fit_magnitude_limit(records)
-    assert found is not None
+@pytest.mark.parametrize("effects, kind, limits", LIMITS)
+def test_a_current_limit_is_found_in_the_records_where_it_acts_and_nowhere_else(effects, kind, limits):
+    plant, records = _records(effects)
+    found = fit_reference_limit(records)
+    assert found is not None and found.kind == kind
     assert found.integrators == ("gamma_d", "gamma_q") and found.measured == ("il_d", "il_q")
-    assert found.limit == pytest.approx(IMAX, rel=2e-3)
+    assert found.limit == pytest.approx(limits, rel=2e-3)
     assert found.misfit_reduction > 0.99
     # the limited reference, rebuilt from the terms alone, is the plant's
     x = np.concatenate([tr.x for tr in records])
@@ -76,23 +92,28 @@ def test_a_current_limit_is_found_in_the_records_where_it_acts_and_nowhere_else(
     limited = TermSet(found.terms(), SIGNALS).evaluate(np.concatenate([x, u], axis=1))
     truth = np.column_stack([inside["ilref_d"], inside["ilref_q"]])
     assert np.sqrt(np.mean((limited - truth) ** 2)) < 0.01 * np.sqrt(np.mean(truth ** 2))
-    assert found.saturated_fraction == pytest.approx(np.mean(np.hypot(inside["ilref_unlimited_d"],
-                                                                      inside["ilref_unlimited_q"]) > IMAX), abs=0.01)
+    free = np.column_stack([inside["ilref_unlimited_d"], inside["ilref_unlimited_q"]])
+    acting = np.hypot(*free.T) > IMAX if kind == "magnitude" else np.any(np.abs(free) > limits, axis=1)
+    assert found.saturated_fraction == pytest.approx(np.mean(acting), abs=0.01)
     assert found.to_dict()["terms"] == found.terms()
+    if kind != "magnitude":
+        return
     _, plain = _records({})
-    assert fit_magnitude_limit(plain) is None
+    assert fit_reference_limit(plain) is None
     assert limit_note(ExplicitModel(STATE_NAMES, INPUT_NAMES, ["1"], np.ones((1, len(STATE_NAMES))))) is None
 
 
 @pytest.mark.slow
-def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduces_the_saturated_tests():
+@pytest.mark.parametrize("effects, kind, limits", LIMITS)
+def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduces_the_saturated_tests(
+        effects, kind, limits):
     import json
 
     from pisml_ros.analysis.metrics import protocol_errors
     from pisml_ros.ident import IdentConfig, make_estimator
     from pisml_ros.plant.scenarios import evaluation_schedules, smallsignal_schedules
 
-    plant, records = _records({"current_limit": {"imax": IMAX}})
+    plant, records = _records(effects)
     small = generate(plant, smallsignal_schedules(0.8), 0.1)
     test = generate(plant, evaluation_schedules(0.04), 0.04)
     fast = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
@@ -100,11 +121,13 @@ def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduc
     model = make_estimator("pisml", IdentConfig.from_mapping(fast)).fit(records, small).explicit_model_
     record = model.metadata["limiter"]
     assert record["run"] and record["found"]
-    assert record["limit"]["limit"] == pytest.approx(IMAX, rel=2e-3)
-    assert model.metadata["selection"]["chosen"].endswith("with limit")
+    assert record["limit"]["kind"] == kind and record["limit"]["limit"] == pytest.approx(limits, rel=2e-3)
+    assert "with limit" in model.metadata["selection"]["chosen"]
     # what `pisml identify` prints and the identifier node logs
-    assert limit_note(model).startswith("a magnitude limit found in the records: gamma_d/gamma_q integrate a "
-                                        "reference limited to 2.2") and limit_note(model).endswith("the model uses it")
+    said = {"magnitude": "a magnitude limit found in the records: gamma_d/gamma_q integrate a reference limited to 2.2 ",
+            "clamp": "a per-axis clamp found in the records: gamma_d/gamma_q integrate a reference clamped to ±1.6 (d) "
+                     "and ±2.4 (q) "}[kind]
+    assert limit_note(model).startswith(said) and limit_note(model).endswith("the model uses it")
     assert not any("far worse" in warning for warning in model.metadata["selection"]["warnings"])
     assert sum("Min(" in t for t in model.terms) == 2
     assert model.n_parameters > np.count_nonzero(model.coefficients)

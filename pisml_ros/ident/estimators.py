@@ -855,7 +855,8 @@ class PISML(_Estimator):
         """Where the model the selection would take reproduces the records far worse than their noise
         explains (the selection's caution: ``selection_warn_noise_ratio`` × ``floor`` +
         ``selection_warn_noise_margin``), the records may hold a saturation no library term has: a
-        magnitude limit of a dq reference is fitted to them (:func:`~.limiter.fit_magnitude_limit`),
+        limit of a dq reference (its magnitude, or each axis) is fitted to them
+        (:func:`~.limiter.fit_reference_limit`),
         and where one is found its two terms S_d, S_q join (i) the sparse re-fit over every term
         (``re-fit +B % with limit``) and (ii) the model the selection would take, fitted in integral
         form on its own terms and those two (``chosen with limit``), or with the two alone fitted to
@@ -869,7 +870,7 @@ class PISML(_Estimator):
         own reference and limit instead of the fitted ones the refinement reaches 0.36 / 1.07 %
         (scratch). On the default plant no fit is above the caution's threshold, so none runs it.
         """
-        from .limiter import fit_magnitude_limit
+        from .limiter import fit_reference_limit
 
         cfg = self.config
         chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
@@ -881,7 +882,7 @@ class PISML(_Estimator):
         if not record["run"]:
             return
         started = time.monotonic()
-        limit = fit_magnitude_limit(train, cfg.roles, span=cfg.limiter_span)
+        limit = fit_reference_limit(train, cfg.roles, span=cfg.limiter_span)
         record["found"] = limit is not None
         record["fit_seconds"] = time.monotonic() - started
         self.metrics_["limiter_search"] = 1.0

@@ -1,26 +1,29 @@
-"""Saturation-type candidates found in the records: the magnitude limit of a dq reference.
+"""Saturation-type candidates found in the records: the limit of a dq reference.
 
-A grid-forming inverter's cascaded control limits the reference its inner loop tracks: the
-current reference il* = ℓ(x) is scaled down to a magnitude m where |ℓ| > m (DESIGN.md's
-``current_limit``; a voltage command limited the same way is the modulation's saturation). With
-the limit active, every equation the reference enters (the inner integrator's, the inductor
-current's through the PI's proportional part, the outer integrator's anti-windup) holds
+A grid-forming inverter's cascaded control limits the reference its inner loop tracks, the
+current reference il* = ℓ(x), in one of two ways (DESIGN.md's effects):
 
-    S(x) = ℓ(x) · min(1, m / |ℓ(x)|),        ℓ = (ℓ_d, ℓ_q) affine in the states,
+- a magnitude limit (``current_limit``): ℓ scaled down to magnitude m where |ℓ| > m,
+  S = ℓ · min(1, m / |ℓ|);
+- a per-axis clamp (``current_clamp``): each axis clipped on its own, S_d = clip(ℓ_d, −m_d, m_d),
+  S_q = clip(ℓ_q, −m_q, m_q).
 
-which no fixed library has: ℓ and m are the plant's, unknown. This module fits them to the
-records so that S_d and S_q become two terms of the library (sympy strings with ``Min`` and
-``sqrt``, so a model that uses them is still data: ``ExplicitModel`` JSON, rebuilt by anyone).
+With the limit active, every equation the reference enters (the inner integrator's, the inductor
+current's through the PI's proportional part, the outer integrator's anti-windup) holds S(x),
+ℓ = (ℓ_d, ℓ_q) affine in the states, which no fixed library has: ℓ and the limits are the
+plant's, unknown. This module fits them to the records so that S_d and S_q become two terms of the
+library (sympy strings with ``Min``, ``Max`` and ``sqrt``, so a model that uses them is still data:
+``ExplicitModel`` JSON, rebuilt by anyone).
 
-How ℓ and m are found (:func:`fit_magnitude_limit`). A PI integrator I integrates its error,
+How ℓ and the limits are found (:func:`fit_reference_limit`). A PI integrator I integrates its error,
 dI/dt = S − c for the measured signal c the loop controls; for each pair of integrators and each
 current pair of the roles that is a constraint, in integral form over windows of ``span`` samples
 (noise averaged, as the backbone): I(t+T) − I(t) + ∫c = ∫S. Those rows fix ℓ where the limit is
 inactive (most samples). The current rows add what the limit does when it acts: each is Θ(x, u)
 (the physics library) plus a free combination of S_d, S_q, the linear part profiled out
-(variable projection). scipy's ``least_squares`` fits ℓ's coefficients and m from a few starts (m
-at high percentiles of |ℓ| from the integrators' linear fit); the pairing that explains the
-records best is kept, and only where the limit removes a clear share of their misfit and acts on
+(variable projection). scipy's ``least_squares`` fits ℓ's coefficients and the limits from a few
+starts (at high percentiles of |ℓ|, or of |ℓ_d| and |ℓ_q|, from the integrators' linear fit); the
+kind and pairing that explain the records best are kept, and only where the limit removes a clear share of their misfit and acts on
 enough samples. ℓ leaves out the angle (the equations of a dq controller do not depend on the
 grid's phase but through the grid terms) and the integrator pair itself (a cascade's reference
 comes from the outer loop).
@@ -34,6 +37,7 @@ parts were dropped, 0.24 with windows of 10, 0.045 with 20, 0.084 with 30, 0.085
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 
@@ -44,56 +48,77 @@ from .library import is_limited, physics_library
 from .roles import SignalRoles
 
 
+KINDS = ("magnitude", "clamp")
+
+
 @dataclasses.dataclass
-class MagnitudeLimit:
-    """A fitted magnitude limit of a dq reference (see the module's docstring).
+class ReferenceLimit:
+    """A fitted limit of a dq reference (see the module's docstring).
 
     Attributes
     ----------
+    kind : str
+        ``"magnitude"`` (one limit on |ℓ|) or ``"clamp"`` (one limit per axis).
     integrators : (str, str)
         The integrator pair whose input is the limited reference.
     measured : (str, str)
         The current pair that integrator pair's loop controls (dI/dt = S − measured).
     argument : dict
         ``{"d": {signal: coefficient}, "q": {...}}`` of ℓ (``"1"`` for the constant).
-    limit : float
-        m, the largest magnitude of the reference (units of the measured pair).
+    limit : tuple of float
+        ``(m,)``, the largest magnitude of the reference, or ``(m_d, m_q)``, the largest magnitude
+        of each axis (units of the measured pair).
     saturated_fraction : float
         Share of the records' samples where |ℓ| > m.
     misfit_reduction : float
         Share of the whitened integral-form misfit (integrator and current rows) the limit removes.
     """
 
+    kind: str
     integrators: tuple
     measured: tuple
     argument: dict
-    limit: float
+    limit: tuple
     saturated_fraction: float
     misfit_reduction: float
 
     def terms(self) -> list[str]:
         """The terms S_d, S_q as sympy-parsable strings over the signals."""
-        return limiter_terms(self.argument["d"], self.argument["q"], self.limit)
+        return limiter_terms(self.argument["d"], self.argument["q"], self.limit, self.kind)
 
     def to_dict(self) -> dict:
-        return {"integrators": list(self.integrators), "measured": list(self.measured),
-                "argument": {axis: dict(v) for axis, v in self.argument.items()}, "limit": self.limit,
+        return {"kind": self.kind, "integrators": list(self.integrators), "measured": list(self.measured),
+                "argument": {axis: dict(v) for axis, v in self.argument.items()}, "limit": list(self.limit),
                 "saturated_fraction": self.saturated_fraction, "misfit_reduction": self.misfit_reduction,
                 "terms": self.terms()}
 
 
+def _number(value: float) -> str:
+    """A fitted number as a decimal literal, "2.0" and not "2" (``ExplicitModel.n_parameters`` counts
+    the decimals written in the terms)."""
+    text = f"{value:.7g}"
+    return text if any(c in text for c in ".en") else text + ".0"
+
+
 def _affine_text(coefficients: dict) -> str:
-    parts = [f"{value:.7g}" if name == "1" else f"{value:.7g}*{name}" for name, value in coefficients.items()
+    parts = [_number(value) if name == "1" else f"{_number(value)}*{name}" for name, value in coefficients.items()
              if value != 0]
     return "(" + (" + ".join(parts).replace("+ -", "- ") if parts else "0") + ")"
 
 
-def limiter_terms(argument_d: dict, argument_q: dict, limit: float) -> list[str]:
+def limiter_terms(argument_d: dict, argument_q: dict, limit, kind: str = "magnitude") -> list[str]:
     """``[S_d, S_q]``: the affine references ``argument_*`` ({signal: coefficient}, ``"1"`` the
-    constant) scaled down to magnitude ``limit`` where they exceed it."""
+    constant) limited by ``limit``: for ``kind`` "magnitude" (``limit`` m or ``(m,)``) scaled down
+    to magnitude m where they exceed it, for "clamp" (``limit`` ``(m_d, m_q)``) each clipped to
+    ±its own."""
     ld, lq = _affine_text(argument_d), _affine_text(argument_q)
-    scale = f"Min(1, {limit:.7g}/sqrt({ld}**2 + {lq}**2))"
-    return [f"{ld}*{scale}", f"{lq}*{scale}"]
+    limit = np.atleast_1d(np.asarray(limit, dtype=float))
+    if kind == "magnitude":
+        scale = f"Min(1, {_number(limit[0])}/sqrt({ld}**2 + {lq}**2))"
+        return [f"{ld}*{scale}", f"{lq}*{scale}"]
+    if kind == "clamp":
+        return [f"Max({_number(-m)}, Min({_number(m)}, {text}))" for text, m in zip((ld, lq), limit)]
+    raise ValueError(f"limiter kind {kind!r}: expected one of {KINDS}")
 
 
 def is_limiter_term(text: str, signals) -> bool:
@@ -128,12 +153,12 @@ class _WindowIntegrals:
         return self._increments[:, columns]
 
 
-def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span: int = 20,
-                        min_reduction: float = 0.05, min_saturated: int = 10,
+def fit_reference_limit(dataset: Dataset, roles: SignalRoles | None = None, span: int = 20,
+                        kinds=KINDS, min_reduction: float = 0.05, min_saturated: int = 10,
                         percentiles=(90.0, 99.0), max_nfev: int = 40, sparse_threshold: float = 0.01,
-                        sparse_loss: float = 0.02) -> MagnitudeLimit | None:
-    """Fit the magnitude limit of a dq reference to the records (module docstring), or None where
-    no pairing of the roles' integrators and currents shows one.
+                        sparse_loss: float = 0.02) -> ReferenceLimit | None:
+    """Fit the limit of a dq reference to the records (module docstring), or None where no kind
+    and pairing of the roles' integrators and currents shows one.
 
     Parameters
     ----------
@@ -143,6 +168,8 @@ def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span
         Which states are the integrators (taken in d/q pairs) and the current pairs.
     span : int
         Samples per integral-form window.
+    kinds : sequence of str
+        The kinds of limit tried (:data:`KINDS`); the one that removes the most misfit is kept.
     min_reduction : float
         Least share of the whitened misfit the limit must remove.
     min_saturated : int
@@ -153,7 +180,7 @@ def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span
 
     Returns
     -------
-    MagnitudeLimit or None
+    ReferenceLimit or None
     """
     roles = roles or SignalRoles()
     names = list(dataset.state_names)
@@ -173,8 +200,8 @@ def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span
     for pair in integrator_pairs:
         keep = [k for k, s in enumerate(names) if s not in pair and s != roles.angle]
         a = np.column_stack([np.ones(len(x)), x[:, keep]])
-        for measured in currents:
-            problem = _LimitProblem(dataset, windows, a, names, pair, measured)
+        for measured, kind in itertools.product(currents, kinds):
+            problem = _LimitProblem(dataset, windows, a, names, pair, measured, kind)
             for q in percentiles:
                 fitted = problem.fit(problem.start(q), max_nfev=max_nfev)
                 if fitted is not None and fitted[2] >= min_saturated and fitted[1] >= min_reduction and \
@@ -185,26 +212,32 @@ def fit_magnitude_limit(dataset: Dataset, roles: SignalRoles | None = None, span
     (p, reduction, saturated), problem, keep = best
     if sparse_threshold > 0:
         # the reference's small parts out (each axis' terms below sparse_threshold of its spread), re-fitted
-        coef = p[:-1].reshape(-1, 2)
+        coef = p[:-problem.n_limits].reshape(-1, 2)
         share = np.abs(coef) * problem.a.std(axis=0)[:, None] / np.maximum((problem.a @ coef).std(axis=0), 1e-300)
         free = share >= sparse_threshold
         free[0] = True  # the constant
-        sparse = problem.fit(np.r_[np.where(free, coef, 0.0).ravel(), p[-1]], max_nfev=max_nfev, free=free.ravel())
+        sparse = problem.fit(np.r_[np.where(free, coef, 0.0).ravel(), p[-problem.n_limits:]], max_nfev=max_nfev,
+                             free=free.ravel())
         if sparse is not None and sparse[2] >= min_saturated and \
                 1.0 - sparse[1] <= (1.0 + sparse_loss) * (1.0 - reduction):
             p, reduction, saturated = sparse
-    coef = p[:-1].reshape(-1, 2)
+    coef = p[:-problem.n_limits].reshape(-1, 2)
     argument = {axis: {name: float(value) for name, value in zip(["1", *[names[k] for k in keep]], coef[:, j])
                        if value != 0}
                 for j, axis in enumerate("dq")}
-    return MagnitudeLimit(problem.pair, problem.measured, argument, float(p[-1]), saturated / len(x), float(reduction))
+    return ReferenceLimit(problem.kind, problem.pair, problem.measured, argument,
+                          tuple(float(m) for m in p[-problem.n_limits:]), saturated / len(x), float(reduction))
 
 
 class _LimitProblem:
-    """The least-squares problem of one pairing (integrator pair, the current pair its loop controls):
-    parameters ℓ's coefficients over ``a``'s columns (constant, states) for d and q, then m."""
+    """The least-squares problem of one kind of limit and one pairing (integrator pair, the current
+    pair its loop controls): parameters ℓ's coefficients over ``a``'s columns (constant, states) for d
+    and q, then the limits (m, or m_d and m_q)."""
 
-    def __init__(self, dataset, windows, a, names, pair, measured):
+    def __init__(self, dataset, windows, a, names, pair, measured, kind="magnitude"):
+        if kind not in KINDS:
+            raise ValueError(f"limiter kind {kind!r}: expected one of {KINDS}")
+        self.kind, self.n_limits = kind, (1 if kind == "magnitude" else 2)
         self.pair, self.measured = tuple(pair), tuple(measured)
         self.a, self.windows, self.theta_int = a, windows, windows.theta
         self.y_int = windows.increments([names.index(s) for s in pair]) + \
@@ -216,12 +249,16 @@ class _LimitProblem:
         self.a_int = windows(a)
         self.w0, *_ = np.linalg.lstsq(self.a_int, self.y_int, rcond=None)
         self.w_int = 1.0 / np.maximum((self.y_int - self.a_int @ self.w0).std(axis=0), 1e-300)
-        self.without = float(np.sum(self.residuals(np.r_[self.w0.ravel(), np.inf]) ** 2))
+        self.without = float(np.sum(self.residuals(np.r_[self.w0.ravel(), [np.inf] * self.n_limits]) ** 2))
 
     def limited(self, p):
-        ref = self.a @ p[:-1].reshape(-1, 2)
+        """The limited reference S per sample, and where the limit acts."""
+        ref = self.a @ p[:-self.n_limits].reshape(-1, 2)
+        limits = p[-self.n_limits:]
+        if self.kind == "clamp":
+            return np.clip(ref, -limits, limits), np.any(np.abs(ref) > limits, axis=1)
         magnitude = np.hypot(ref[:, 0], ref[:, 1])
-        return ref * np.minimum(1.0, p[-1] / np.maximum(magnitude, 1e-300))[:, None], magnitude
+        return ref * np.minimum(1.0, limits[0] / np.maximum(magnitude, 1e-300))[:, None], magnitude > limits[0]
 
     def residuals(self, p):
         s_int = self.windows(self.limited(p)[0])
@@ -231,15 +268,19 @@ class _LimitProblem:
                                ((self.y_free - features @ c) * self.w_free).ravel()])
 
     def start(self, percentile: float) -> np.ndarray:
-        """ℓ from the integrator rows' linear fit, m at a percentile of its magnitude."""
-        return np.r_[self.w0.ravel(), np.percentile(np.hypot(*(self.a @ self.w0).T), percentile)]
+        """ℓ from the integrator rows' linear fit, the limits at a percentile of its magnitude (of
+        each axis' for a clamp)."""
+        ref = self.a @ self.w0
+        size = np.abs(ref) if self.kind == "clamp" else np.hypot(ref[:, 0], ref[:, 1])
+        return np.r_[self.w0.ravel(), np.percentile(size, percentile, axis=0)]
 
     def fit(self, p0, max_nfev: int, free=None):
         """(parameters, share of the misfit removed, samples where the limit acts), or None where the
         fit fails; ``free`` (bool over ℓ's coefficients) holds the others at ``p0``'s values."""
         import scipy.optimize
 
-        free = np.r_[np.ones(len(p0) - 1, dtype=bool) if free is None else free, True]
+        free = np.r_[np.ones(len(p0) - self.n_limits, dtype=bool) if free is None else free,
+                     np.ones(self.n_limits, dtype=bool)]
 
         def residuals(v):
             p = p0.copy()
@@ -252,20 +293,25 @@ class _LimitProblem:
             return None
         p = p0.copy()
         p[free] = sol.x
-        if not (np.all(np.isfinite(p)) and p[-1] > 0):
+        if not (np.all(np.isfinite(p)) and np.all(p[-self.n_limits:] > 0)):
             return None
-        return p, 1.0 - 2.0 * sol.cost / self.without, int(np.sum(self.limited(p)[1] > p[-1]))
+        return p, 1.0 - 2.0 * sol.cost / self.without, int(np.sum(self.limited(p)[1]))
 
 
 def limit_note(model) -> str | None:
-    """The magnitude limit the engine found in the records (``model.metadata["limiter"]``, from
-    ``PISML``), in words for a user, or None where none was searched for or found."""
+    """The limit the engine found in the records (``model.metadata["limiter"]``, from ``PISML``), in
+    words for a user, or None where none was searched for or found."""
     record = (getattr(model, "metadata", None) or {}).get("limiter") or {}
     if not record.get("found"):
         return None
     found = record["limit"]
     used = any(term in model.terms for term in found["terms"])
-    return (f"a magnitude limit found in the records: {'/'.join(found['integrators'])} integrate a reference "
-            f"limited to {found['limit']:.4g} minus {'/'.join(found['measured'])}, the limit acting on "
+    limits = np.atleast_1d(found["limit"])
+    if found.get("kind", "magnitude") == "clamp":
+        what, how = "a per-axis clamp", f"clamped to ±{limits[0]:.4g} (d) and ±{limits[-1]:.4g} (q)"
+    else:
+        what, how = "a magnitude limit", f"limited to {limits[0]:.4g}"
+    return (f"{what} found in the records: {'/'.join(found['integrators'])} integrate a reference {how} "
+            f"minus {'/'.join(found['measured'])}, the limit acting on "
             f"{100 * found['saturated_fraction']:.1f} % of the samples; "
             + ("the model uses it" if used else "the model chosen does not use it"))

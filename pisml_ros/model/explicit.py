@@ -18,7 +18,7 @@ from ..data import Dataset
 from ..equilibrium import EquilibriumNotFound, find_equilibrium  # noqa: F401  (re-exported by pisml_ros.model)
 from ..fileio import atomic_write_text
 from .replay import replay
-from .expressions import ExpressionError, term_set
+from .expressions import ExpressionError, term_set, written_numbers
 
 FORMAT = "pisml-explicit-model/1"
 
@@ -60,12 +60,13 @@ class ExplicitModel:
     @property
     def n_parameters(self) -> int:
         """Nonzero coefficients, plus the distinct numbers written inside the terms in use (a fitted
-        limiter's reference and limit, :mod:`pisml_ros.ident.limiter`): fitted to the data too."""
+        limiter's reference and limits, :mod:`pisml_ros.ident.limiter`): fitted to the data too. A
+        number and its negative count once (a clamp's −m and m are one fitted value)."""
         used = np.any(self.coefficients != 0, axis=1)
         inside = set()
-        for expr, keep in zip(self._terms.exprs, used):
+        for text, keep in zip(self.terms, used):
             if keep:
-                inside |= expr.atoms(sympy.Float)
+                inside |= written_numbers(text)
         return int(np.count_nonzero(self.coefficients)) + len(inside)
 
     def _stack(self, x, u):

@@ -60,6 +60,24 @@ def parse_term(text: str, names: Sequence[str]) -> sympy.Expr:
     return _to_sympy(tree.body, symbols)
 
 
+def written_numbers(text: str) -> set:
+    """The magnitudes of the decimal numbers written in a term (``1.2``, ``-0.5``, ``2.0``; not the
+    integers of its structure, ``**2`` or ``Min(1, …)``): what was fitted into the term. A number
+    and its negative are one (a clamp's −m and m).
+
+    Raises
+    ------
+    ExpressionError
+        ``text`` is not an expression.
+    """
+    try:
+        tree = ast.parse(str(text).strip(), mode="eval")
+    except SyntaxError as err:
+        raise ExpressionError(f"term {text!r}: not an expression ({err.msg})") from None
+    return {abs(node.value) for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and isinstance(node.value, float)}
+
+
 _BINOPS = {ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b, ast.Mult: lambda a, b: a * b,
            ast.Div: lambda a, b: a / b, ast.Pow: lambda a, b: a ** b}
 
