@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: env demo test test-fast bags bench bench-quick bench-gap bench-oracle bench-plants bench-scenarios bench-microgrid bench-independent clean
+.PHONY: env demo test test-fast bags bench bench-quick bench-gap bench-oracle bench-plants bench-limits bench-scenarios bench-microgrid bench-independent clean
 
 env:
 	@bash scripts/bootstrap_env.sh
@@ -43,6 +43,11 @@ bench-gap: env
 # bench/plants_results.json, bench/PLANTS_RESULTS.md
 bench-plants: env
 	$(PY) bench/plants_bench.py
+
+# PISML on the default inverter with a limit of its current reference (a magnitude limit, a per-axis
+# clamp), two recordings each: bench/limits_results.json, bench/LIMITS_RESULTS.md (~20 min on 2 cores)
+bench-limits: env
+	$(PY) bench/plants_bench.py --plants saturation,clamp --seeds 0,1 --out bench/limits_results.json --markdown bench/LIMITS_RESULTS.md
 
 # PISML on the protocol with one thing changed (sample rate, voltages, phase jumps, small-signal point,
 # record count/length; ~20 min on 2 cores at stop 38, 23 at stop 40): bench/scenarios_results.json, bench/SCENARIOS_RESULTS.md

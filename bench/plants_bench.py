@@ -1,6 +1,8 @@
-"""PISML on inverters whose parameters the engine was never tuned on.
+"""PISML on inverters whose parameters the engine was never tuned on, and on inverters with a limit.
 
     python bench/plants_bench.py [--plants standard,vendor-b,vendor-c] [--seeds 0,1,2] [--out FILE] [--markdown FILE]
+    python bench/plants_bench.py --plants saturation,clamp --seeds 0,1 --out bench/limits_results.json \
+        --markdown bench/LIMITS_RESULTS.md        (make bench-limits)
 
 Every setting of the engine was measured on the default inverter (config/plant_nominal.yaml). A
 user's inverter has other filters, gains and set-points. This benchmark runs the paper protocol
@@ -11,6 +13,11 @@ unstable modes and missing equilibria over ug 0.2-1.1, operating-point error, fi
 plants have the default's structure (the true equations are ~88 monomials for each), so a sparse
 model's coefficient count is comparable. Writes bench/plants_results.json and
 bench/PLANTS_RESULTS.md (~13 min on 2 cores with three seeds).
+
+The plants of PLANT_EFFECTS are the default inverter with a limit of its current reference, active in
+part of the training records: the magnitude limit of the main benchmark's saturation plant, and a
+per-axis clamp (``make bench-limits``, ~20 min with two seeds). Their grid is where the plant has an
+equilibrium (the clamp has none below ug 0.8).
 """
 from __future__ import annotations
 
@@ -37,6 +44,13 @@ PLANT_PARAMETERS = {
     "vendor-c": {"Lf": 0.08, "Cf": 0.03, "Lg": 0.1, "Rd": 0.08, "KpV": 0.5, "KiV": 2.0, "KpC": 0.4, "KiC": 3.0,
                  "mp": 0.08, "mq": 0.03, "wc": 20.0, "Pset": 0.3, "Qset": -0.1},
 }
+# plants with an effect of pisml_ros.plant.effects (the default parameters)
+PLANT_EFFECTS = {
+    "saturation": {"current_limit": {"imax": 2.2}},
+    # each axis of the current reference clipped: d above 1.6 on ~10 % of the training samples, q above 2.4 on ~5 %
+    "clamp": {"current_clamp": {"imax_d": 1.6, "imax_q": 2.4}},
+}
+PLANTS = (*PLANT_PARAMETERS, *PLANT_EFFECTS)
 METHODS = ("pisml", "mod-sindy")
 
 
@@ -44,7 +58,8 @@ def main(argv=None) -> int:
     from bench import add_settings_option, datasets, fit_summary, plant_grid, run_fit, settings_or_exit, ug_sweep_set
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--plants", default=",".join(PLANT_PARAMETERS))
+    parser.add_argument("--plants", default=",".join(PLANT_PARAMETERS),
+                        help=f"any of {', '.join(PLANTS)} (default: the first three)")
     parser.add_argument("--seeds", default="0,1,2", help="recordings (scenario and noise seeds)")
     parser.add_argument("--out", default=str(BENCH / "plants_results.json"))
     parser.add_argument("--markdown", default=str(BENCH / "PLANTS_RESULTS.md"))
@@ -58,18 +73,20 @@ def main(argv=None) -> int:
     started = time.monotonic()
     rows = []
     for name in (p.strip() for p in args.plants.split(",") if p.strip()):
-        if name not in PLANT_PARAMETERS:
-            parser.error(f"--plants: unknown plant {name!r} (known: {', '.join(PLANT_PARAMETERS)})")
-        params = PlantParameters().replace(**PLANT_PARAMETERS[name])
+        if name not in PLANTS:
+            parser.error(f"--plants: unknown plant {name!r} (known: {', '.join(PLANTS)})")
+        params = PlantParameters().replace(**PLANT_PARAMETERS.get(name, {}))
+        effects = PLANT_EFFECTS.get(name, {})
         for seed, snr in ((int(k), snr) for k in args.seeds.split(",") for snr in (None, 40.0)):
             noise = "clean" if snr is None else f"{snr:g} dB"
-            plant, train, small, test = datasets({}, snr, seed=seed, params=params)
+            plant, train, small, test = datasets(effects, snr, seed=seed, params=params)
             grid = plant_grid(plant)
             truth = {g: plant.eigenvalues(g, 0.0) for g in grid}
             sweep = ug_sweep_set(plant, grid)
             for method in METHODS:
                 row, _ = run_fit(method, plant, train, small, test, sweep, truth, config, f"{name}/{noise}")
-                row.update(plant=name, noise=noise, seed=seed, parameters=PLANT_PARAMETERS[name],
+                row.update(plant=name, noise=noise, seed=seed, parameters=PLANT_PARAMETERS.get(name, {}),
+                           effects=effects,
                            plant_unstable=[g for g in grid if truth[g].real.max() > 0])
                 rows.append({k: v for k, v in row.items() if not k.startswith("_")})
                 print(f"{name:9s} {seed} {noise:6s} {method:10s} {fit_summary(row)}", flush=True)
@@ -85,15 +102,18 @@ def write(args, rows, started, final=False):
     result = {"complete": final, "command": "python bench/plants_bench.py " + shlex.join(sys.argv[1:]),
               "date": time.strftime("%Y-%m-%d"),
               "machine": machine(),
-              "total_seconds": round(time.monotonic() - started, 1), "plants": PLANT_PARAMETERS, "runs": rows}
+              "total_seconds": round(time.monotonic() - started, 1), "plants": PLANT_PARAMETERS,
+              "effects": PLANT_EFFECTS, "runs": rows}
     Path(args.out).write_text(json.dumps(result, indent=2, default=float) + "\n")
     lines = ["# PISML on other inverters", "",
              f"Generated by `{result['command'].strip()}` on {result['machine']} ({result['date']}); "
              f"{result['total_seconds']:.0f} s.", "",
              "The paper protocol (bench/bench.py's schedules, seeds and noise) on inverters with other "
-             "parameters (`bench/plants_bench.py`, PLANT_PARAMETERS); errors against each plant's clean truth. "
+             "parameters or a limit of the current reference (`bench/plants_bench.py`, PLANT_PARAMETERS, "
+             "PLANT_EFFECTS); errors against each plant's clean truth. "
              "Spurious: an unstable model mode where the plant is stable (ug 0.2-1.1); no equilibrium: "
-             "grid points where the analysis finds none (the plant has one at each). IOD / OOD vector: the four "
+             "grid points where the analysis finds none (the plant has one at each: a plant with a limit may have "
+             "none at low ug, and those are off its grid). IOD / OOD vector: the four "
              "scored states taken together (RESULTS.md).", "",
              "| " + " | ".join(["plant", "seed", "data", "method", *FIT_COLUMNS]) + " |",
              "|" + "---|" * (4 + len(FIT_COLUMNS))]
@@ -108,9 +128,12 @@ def write(args, rows, started, final=False):
         whole = [r["seed"] for r in noisy if "error" not in r and not r.get("no_equilibrium")]
         lines.append(f"- {name}: both targets {len(within)} of {len(noisy)}; no spurious unstable mode {len(calm)} of "
                      f"{len(noisy)}; an equilibrium at every grid point {len(whole)} of {len(noisy)}")
-    lines += ["", "Parameters (per unit; the rest as config/plant_nominal.yaml):", ""]
-    lines += [f"- {name}: {', '.join(f'{k} {v:g}' for k, v in p.items()) or 'the default'}"
-              for name, p in PLANT_PARAMETERS.items()]
+    lines += ["", "Parameters (per unit; the rest as config/plant_nominal.yaml) and effects:", ""]
+    for name in dict.fromkeys(r["plant"] for r in rows):
+        changed = ", ".join(f"{k} {v:g}" for k, v in PLANT_PARAMETERS.get(name, {}).items())
+        effect = "; ".join(f"{e} " + ", ".join(f"{k} {v:g}" for k, v in cfg.items())
+                           for e, cfg in PLANT_EFFECTS.get(name, {}).items())
+        lines.append(f"- {name}: {'; '.join(filter(None, [changed, effect])) or 'the default'}")
     Path(args.markdown).write_text("\n".join(lines) + "\n")
 
 
