@@ -23,10 +23,10 @@ inactive (most samples). The current rows add what the limit does when it acts: 
 (the physics library) plus a free combination of S_d, S_q, the linear part profiled out
 (variable projection). scipy's ``least_squares`` fits ℓ's coefficients and the limits from a few
 starts (at high percentiles of |ℓ|, or of |ℓ_d| and |ℓ_q|, from the integrators' linear fit); the
-kind and pairing that explain the records best are kept, and only where the limit removes a clear share of their misfit and acts on
-enough samples. ℓ leaves out the angle (the equations of a dq controller do not depend on the
-grid's phase but through the grid terms) and the integrator pair itself (a cascade's reference
-comes from the outer loop).
+kind and pairing that explain the records best are kept, and only where the limit removes a clear
+share of their misfit and acts on enough samples. ℓ leaves out the angle (the equations of a dq
+controller do not depend on the grid's phase but through the grid terms) and the integrator pair
+itself (a cascade's reference comes from the outer loop).
 
 Measured (stop 54, the benchmark's saturation plant, ``current_limit`` imax 2.2, scratch
 /tmp/sat): clean records (recording 0), m = 2.2000, the limited reference's error on the test
@@ -69,7 +69,7 @@ class ReferenceLimit:
         ``(m,)``, the largest magnitude of the reference, or ``(m_d, m_q)``, the largest magnitude
         of each axis (units of the measured pair).
     saturated_fraction : float
-        Share of the records' samples where |ℓ| > m.
+        Share of the records' samples where the limit acts (|ℓ| > m, or an axis beyond its own).
     misfit_reduction : float
         Share of the whitened integral-form misfit (integrator and current rows) the limit removes.
     """
