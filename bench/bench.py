@@ -275,9 +275,17 @@ def selection_record(model):
     if not selection:
         return {}
     rescue = model.metadata.get("refinement_rescue")  # noisy data: the second try's trigger (since stop 41)
-    rescue = {} if not rescue else {"rescue": {"ran": bool(rescue["run"]), "ratio": finite(rescue["ratio"]),
-                                               "noise_floor_pct": finite(rescue["noise_floor_pct"])}}
-    return {"selection": {**rescue, "chosen": selection["chosen"], "tolerance": finite(selection.get("tolerance")),
+    searches = {} if not rescue else {"rescue": {"ran": bool(rescue["run"]), "ratio": finite(rescue["ratio"]),
+                                                 "noise_floor_pct": finite(rescue["noise_floor_pct"])}}
+    # since stop 55: the limit search (estimators.PISML._limiter_family), where it ran
+    limiter = model.metadata.get("limiter") or {}
+    if limiter.get("run"):
+        found = limiter.get("limit") or {}
+        searches["limiter"] = {"found": bool(limiter.get("found")), "kind": found.get("kind"),
+                               "limit": found.get("limit"), "selected_after": limiter.get("selected_after"),
+                               "used": bool(found) and any(t in model.terms for t in found.get("terms", [])),
+                               "seconds": finite(limiter.get("seconds") or limiter.get("fit_seconds"))}
+    return {"selection": {**searches, "chosen": selection["chosen"], "tolerance": finite(selection.get("tolerance")),
                           "hold_error_pct": finite(selection.get("hold_error_pct")),
                           # since stop 42: the prune rounds that lost the fit (estimators._lost_rounds)
                           "round_rise": finite(selection.get("round_rise")),

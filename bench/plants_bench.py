@@ -128,6 +128,17 @@ def write(args, rows, started, final=False):
         whole = [r["seed"] for r in noisy if "error" not in r and not r.get("no_equilibrium")]
         lines.append(f"- {name}: both targets {len(within)} of {len(noisy)}; no spurious unstable mode {len(calm)} of "
                      f"{len(noisy)}; an equilibrium at every grid point {len(whole)} of {len(noisy)}")
+    searched = [r for r in rows if (r.get("selection") or {}).get("limiter")]
+    if searched:
+        lines += ["", "The limit search (engine step 7: where the model the selection would take is far above the "
+                  "noise floor), per PISML fit that ran it:", ""]
+        for r in searched:
+            found = r["selection"]["limiter"]
+            what = (f"{found['kind']} {', '.join(f'{m:.4g}' for m in found['limit'])}" if found["found"]
+                    else "nothing found")
+            lines.append(f"- {r['plant']} {r['seed']} {r['noise']} {r['method']}: {what}; "
+                         f"{'the model uses it' if found['used'] else 'the model chosen does not use it'} "
+                         f"(chosen: {r['selection']['chosen']}; {found['seconds']:.0f} s)")
     lines += ["", "Parameters (per unit; the rest as config/plant_nominal.yaml) and effects:", ""]
     for name in dict.fromkeys(r["plant"] for r in rows):
         changed = ", ".join(f"{k} {v:g}" for k, v in PLANT_PARAMETERS.get(name, {}).items())
