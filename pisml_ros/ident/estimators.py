@@ -868,7 +868,9 @@ class PISML(_Estimator):
         10.2 / 62.5 % IOD / OOD to 0.0224 / 0.093 % (the re-fit with the limit won), 40 dB from
         5.23 / 62.9 % to 1.48 / 5.46 % (the refinement from ``chosen plus limit``); with the plant's
         own reference and limit instead of the fitted ones the refinement reaches 0.36 / 1.07 %
-        (scratch). On the default plant no fit is above the caution's threshold, so none runs it.
+        (scratch). Stop 55, `make bench-limits`, a per-axis clamp (±1.6 / ±2.4 p.u.): clean 0.0227 /
+        0.142 % (recording 0; 0.84 / 40.0 % with the magnitude limit only), 40 dB found but not chosen
+        (1.26 / 49.3 %). On the default plant no fit is above the caution's threshold, so none runs it.
         """
         from .limiter import fit_reference_limit
 
