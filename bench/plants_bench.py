@@ -138,7 +138,7 @@ def write(args, rows, started, final=False):
                     else "nothing found")
             lines.append(f"- {r['plant']} {r['seed']} {r['noise']} {r['method']}: {what}; "
                          f"{'the model uses it' if found['used'] else 'the model chosen does not use it'} "
-                         f"(chosen: {r['selection']['chosen']}; {found['seconds']:.0f} s)")
+                         f"(chosen: {r['selection']['chosen']}; {found['seconds'] or 0:.0f} s)")
     lines += ["", "Parameters (per unit; the rest as config/plant_nominal.yaml) and effects:", ""]
     for name in dict.fromkeys(r["plant"] for r in rows):
         changed = ", ".join(f"{k} {v:g}" for k, v in PLANT_PARAMETERS.get(name, {}).items())

@@ -48,6 +48,8 @@ def test_limiter_terms_limit_the_reference_and_differentiate_in_numpy_and_torch(
         np.testing.assert_allclose(ts.evaluate(z), clipped, rtol=1e-6)
     with pytest.raises(ValueError, match="limiter kind 'box'"):
         limiter_terms({"1": 0.5}, {"1": 0.5}, 1.0, "box")
+    with pytest.raises(ValueError, match="limiter kind 'box'"):
+        fit_reference_limit(None, kinds=("magnitude", "box"))  # before any work on the records
     # sympy writes the derivatives of Min and Max with Heaviside: torch's code must run on a batch of rows
     values, grad = ts.values_and_gradient_torch(torch.as_tensor(z))
     np.testing.assert_allclose(grad.numpy(), ts.gradient(z), rtol=1e-9, atol=1e-12)

@@ -106,6 +106,12 @@ def _affine_text(coefficients: dict) -> str:
     return "(" + (" + ".join(parts).replace("+ -", "- ") if parts else "0") + ")"
 
 
+def _checked_kind(kind: str) -> str:
+    if kind not in KINDS:
+        raise ValueError(f"limiter kind {kind!r}: expected one of {KINDS}")
+    return kind
+
+
 def limiter_terms(argument_d: dict, argument_q: dict, limit, kind: str = "magnitude") -> list[str]:
     """``[S_d, S_q]``: the affine references ``argument_*`` ({signal: coefficient}, ``"1"`` the
     constant) limited by ``limit``: for ``kind`` "magnitude" (``limit`` m or ``(m,)``) scaled down
@@ -116,9 +122,8 @@ def limiter_terms(argument_d: dict, argument_q: dict, limit, kind: str = "magnit
     if kind == "magnitude":
         scale = f"Min(1, {_number(limit[0])}/sqrt({ld}**2 + {lq}**2))"
         return [f"{ld}*{scale}", f"{lq}*{scale}"]
-    if kind == "clamp":
+    if _checked_kind(kind) == "clamp":
         return [f"Max({_number(-m)}, Min({_number(m)}, {text}))" for text, m in zip((ld, lq), limit)]
-    raise ValueError(f"limiter kind {kind!r}: expected one of {KINDS}")
 
 
 def is_limiter_term(text: str, signals) -> bool:
@@ -182,6 +187,7 @@ def fit_reference_limit(dataset: Dataset, roles: SignalRoles | None = None, span
     -------
     ReferenceLimit or None
     """
+    kinds = [_checked_kind(kind) for kind in kinds]
     roles = roles or SignalRoles()
     names = list(dataset.state_names)
     signals = names + list(dataset.input_names)
@@ -235,9 +241,7 @@ class _LimitProblem:
     and q, then the limits (m, or m_d and m_q)."""
 
     def __init__(self, dataset, windows, a, names, pair, measured, kind="magnitude"):
-        if kind not in KINDS:
-            raise ValueError(f"limiter kind {kind!r}: expected one of {KINDS}")
-        self.kind, self.n_limits = kind, (1 if kind == "magnitude" else 2)
+        self.kind, self.n_limits = _checked_kind(kind), (1 if kind == "magnitude" else 2)
         self.pair, self.measured = tuple(pair), tuple(measured)
         self.a, self.windows, self.theta_int = a, windows, windows.theta
         self.y_int = windows.increments([names.index(s) for s in pair]) + \
