@@ -40,10 +40,7 @@ def parse_term(text: str, names: Sequence[str]) -> sympy.Expr:
         raise ExpressionError(f"term {text!r}: expected a non-empty expression string")
     if len(text) > 2000:
         raise ExpressionError(f"term {text[:40]!r}...: longer than 2000 characters")
-    try:
-        tree = ast.parse(text.strip(), mode="eval")
-    except SyntaxError as err:
-        raise ExpressionError(f"term {text!r}: not an expression ({err.msg})") from None
+    tree = _syntax_tree(text)
     known = set(names)
     for node in ast.walk(tree):
         if not isinstance(node, _ALLOWED_NODES):
@@ -60,6 +57,14 @@ def parse_term(text: str, names: Sequence[str]) -> sympy.Expr:
     return _to_sympy(tree.body, symbols)
 
 
+def _syntax_tree(text: str) -> ast.Expression:
+    """Python's syntax tree of a term (not evaluated), or ExpressionError where it is not an expression."""
+    try:
+        return ast.parse(str(text).strip(), mode="eval")
+    except SyntaxError as err:
+        raise ExpressionError(f"term {text!r}: not an expression ({err.msg})") from None
+
+
 def written_numbers(text: str) -> set:
     """The magnitudes of the decimal numbers written in a term (``1.2``, ``-0.5``, ``2.0``; not the
     integers of its structure, ``**2`` or ``Min(1, …)``): what was fitted into the term. A number
@@ -70,11 +75,7 @@ def written_numbers(text: str) -> set:
     ExpressionError
         ``text`` is not an expression.
     """
-    try:
-        tree = ast.parse(str(text).strip(), mode="eval")
-    except SyntaxError as err:
-        raise ExpressionError(f"term {text!r}: not an expression ({err.msg})") from None
-    return {abs(node.value) for node in ast.walk(tree)
+    return {abs(node.value) for node in ast.walk(_syntax_tree(text))
             if isinstance(node, ast.Constant) and isinstance(node.value, float)}
 
 
