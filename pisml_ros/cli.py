@@ -113,7 +113,7 @@ def cmd_identify(args) -> int:
     from .analysis.operating_point import identified_input_range
     from .data import concat_datasets, read_dataset
     from .ident import METHODS, ConfigError, IdentConfig, make_estimator, selection_warnings, settings_from_assignments
-    from .ident.limiter import limit_note
+    from .ident.limiter import limit_note, readable_equations
 
     if args.method not in METHODS:
         raise UserError(f"--method {args.method}: choose one of {', '.join(METHODS)}")
@@ -184,7 +184,7 @@ def cmd_identify(args) -> int:
     for warning in selection_warnings(model):
         print(f"  caution: {warning}")
     if args.equations:
-        for line in model.equations(digits=5):
+        for line in readable_equations(model, digits=5):
             print("  " + line)
     return 0
 

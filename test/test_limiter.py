@@ -6,7 +6,8 @@ import pytest
 
 from pisml_ros.ident import SignalRoles
 from pisml_ros.ident.library import integrator_row_mask, monomial_basis
-from pisml_ros.ident.limiter import fit_reference_limit, is_limiter_term, limit_note, limiter_terms
+from pisml_ros.ident.limiter import (fit_reference_limit, is_limiter_term, limit_note, limiter_terms,
+                                     readable_equations)
 from pisml_ros.model import ExplicitModel
 from pisml_ros.model.expressions import TermSet
 from pisml_ros.plant import InverterPlant
@@ -76,6 +77,53 @@ def test_limiter_terms_stay_whole_in_the_monomial_basis_enter_integrator_rows_an
     # a clamp: the reference's three numbers and one limit per axis (its −m and m are one number)
     terms[-2:] = limiter_terms({"1": 0.5, "il_d": 2.0}, {"vc_q": -1.5}, (1.2, 0.9), "clamp")
     assert ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, coef).n_parameters == 3 + 5
+
+
+@pytest.mark.parametrize("kind, limit", [("magnitude", (2.2,)), ("clamp", (1.6, 2.4))])
+def test_readable_equations_write_the_limited_reference_as_named_signals_that_define_the_same_field(kind, limit):
+    import sympy
+
+    argument = {"d": {"1": 0.5, "il_d": 2.0}, "q": {"vc_q": -1.5}}
+    limited = limiter_terms(argument["d"], argument["q"], limit, kind)
+    terms = ["1", "il_d", *limited, "Min(1.0, il_q)"]
+    names = list(STATE_NAMES)
+    coef = np.zeros((len(terms), len(names)))
+    coef[1:3, names.index("gamma_d")] = [-1.0, 1.0]
+    coef[3, names.index("gamma_q")] = 0.5
+    coef[[0, 4], names.index("delta")] = [1.0, 2.0]
+    record = {"kind": kind, "integrators": ["gamma_d", "gamma_q"], "measured": ["il_d", "il_q"], "argument": argument,
+              "limit": list(limit), "saturated_fraction": 0.1, "misfit_reduction": 0.5, "terms": limited}
+    model = ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, coef, {"limiter": {"found": True, "limit": record}})
+    lines = readable_equations(model, digits=6)
+    equations, where = lines[:len(names)], lines[len(names):]
+    assert equations[names.index("gamma_d")] == "d(gamma_d)/dt = -1*il_d + 1*S_d"
+    assert equations[names.index("delta")] == "d(delta)/dt = 1 + 2*S1"
+    written = {"magnitude": ["l_d*Min(1, 2.2/sqrt(l_d**2 + l_q**2))", "l_q*Min(1, 2.2/sqrt(l_d**2 + l_q**2))"],
+               "clamp": ["Max(-1.6, Min(1.6, l_d))", "Max(-2.4, Min(2.4, l_q))"]}[kind]
+    assert where == ["where l_d = 0.5 + 2.0*il_d", "where l_q = -1.5*vc_q", f"where S_d = {written[0]}",
+                     f"where S_q = {written[1]}", "where S1 = Min(1.0, il_q)"]
+    # the named equations with their definitions substituted are the model's own
+    symbols = {s: sympy.Symbol(s) for s in SIGNALS}
+    defined = {}
+    for line in where:
+        name, text = line[len("where "):].split(" = ", 1)
+        defined[sympy.Symbol(name)] = sympy.sympify(text, locals={**symbols, **{str(k): k for k in defined}}).subs(defined)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        point = dict(zip(SIGNALS, rng.normal(scale=1.5, size=len(SIGNALS))))
+
+        def at(expr):  # (by name: the model's symbols carry assumptions of their own)
+            return float(expr.subs({symbol: point[str(symbol)] for symbol in expr.free_symbols}))
+
+        for line, exact in zip(equations, model.sympy_equations()):
+            rhs = sympy.sympify(line.split(" = ", 1)[1], locals={**symbols, **{str(k): k for k in defined}})
+            assert at(rhs.subs(defined)) == pytest.approx(at(exact), rel=1e-9, abs=1e-12)
+    # a record that does not say what the model's terms say: generic names, each term whole
+    record["argument"] = {"d": {"1": 0.6, "il_d": 2.0}, "q": {"vc_q": -1.5}}
+    assert readable_equations(model)[len(names):] == [f"where S{k + 1} = {t}" for k, t in enumerate(terms[2:])]
+    # no such term: the equations as they are
+    plain = ExplicitModel(STATE_NAMES, INPUT_NAMES, terms[:2], coef[:2])
+    assert readable_equations(plain, digits=4) == plain.equations(digits=4)
 
 
 @pytest.mark.slow

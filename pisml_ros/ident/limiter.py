@@ -117,13 +117,59 @@ def limiter_terms(argument_d: dict, argument_q: dict, limit, kind: str = "magnit
     constant) limited by ``limit``: for ``kind`` "magnitude" (``limit`` m or ``(m,)``) scaled down
     to magnitude m where they exceed it, for "clamp" (``limit`` ``(m_d, m_q)``) each clipped to
     ±its own."""
-    ld, lq = _affine_text(argument_d), _affine_text(argument_q)
+    return _limited(_affine_text(argument_d), _affine_text(argument_q), limit, kind)
+
+
+def _limited(ld: str, lq: str, limit, kind: str) -> list[str]:
+    """``[S_d, S_q]`` of the references written ``ld``, ``lq`` (:func:`limiter_terms`)."""
     limit = np.atleast_1d(np.asarray(limit, dtype=float))
     if kind == "magnitude":
         scale = f"Min(1, {_number(limit[0])}/sqrt({ld}**2 + {lq}**2))"
         return [f"{ld}*{scale}", f"{lq}*{scale}"]
     if _checked_kind(kind) == "clamp":
         return [f"Max({_number(-m)}, Min({_number(m)}, {text}))" for text, m in zip((ld, lq), limit)]
+
+
+def readable_equations(model, digits: int = 5) -> list[str]:
+    """The equations of ``model`` (an ``ExplicitModel``) for a reader: each term with a ``Min`` or
+    ``Max`` it uses written as a name, defined after the equations in lines ``where NAME = ...``.
+
+    The limit the engine found (``model.metadata["limiter"]``) reads as the controller's: the
+    reference as ``l_d``, ``l_q`` (its numbers as the terms hold them) and the limited reference as
+    ``S_d``, ``S_q`` of them; any other such term as ``S1``, ``S2``, …. A name already taken by a
+    signal gets a trailing ``_``. Without such terms these are :meth:`ExplicitModel.equations`.
+    """
+    signals = [*model.state_names, *model.input_names]
+    used = [term for term, row in zip(model.terms, model.coefficients) if np.any(row != 0)]
+    limited = [term for term in used if is_limiter_term(term, signals)]
+    taken = set(signals)
+
+    def fresh(name: str) -> str:
+        while name in taken:
+            name += "_"
+        taken.add(name)
+        return name
+
+    names, definitions = {}, []
+    found = ((getattr(model, "metadata", None) or {}).get("limiter") or {}).get("limit") or {}
+    try:
+        kind = found.get("kind", "magnitude")
+        # the record's terms rebuilt from its numbers: names only where they say the same thing
+        ours = limiter_terms(found["argument"]["d"], found["argument"]["q"], found["limit"], kind) \
+            if found.get("terms") and set(found["terms"]) & set(limited) else None
+    except (KeyError, TypeError, ValueError):
+        ours = None
+    if ours is not None and ours == list(found["terms"]):
+        reference = {axis: fresh(f"l_{axis}") for axis in "dq"}
+        definitions += [f"{reference[axis]} = {_affine_text(found['argument'][axis])[1:-1]}" for axis in "dq"]
+        for axis, term, text in zip("dq", ours, _limited(reference["d"], reference["q"], found["limit"], kind)):
+            if term in limited:
+                names[term] = fresh(f"S_{axis}")
+                definitions.append(f"{names[term]} = {text}")
+    for k, term in enumerate([term for term in limited if term not in names]):
+        names[term] = fresh(f"S{k + 1}")
+        definitions.append(f"{names[term]} = {term}")
+    return model.equations(digits=digits, names=names) + [f"where {line}" for line in definitions]
 
 
 def is_limiter_term(text: str, signals) -> bool:

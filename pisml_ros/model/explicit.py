@@ -153,8 +153,13 @@ class ExplicitModel:
         return replay(self, dataset, substeps=substeps, method=method)
 
     # ---------------------------------------------------------------- symbolic views
-    def equations(self, digits: int = 6, threshold: float = 0.0) -> list[str]:
-        """Readable equations, one per state: ``d(x)/dt = c1*term1 + ...``."""
+    def equations(self, digits: int = 6, threshold: float = 0.0, names: dict | None = None) -> list[str]:
+        """Readable equations, one per state: ``d(x)/dt = c1*term1 + ...``.
+
+        ``names`` ({term: name}) writes a name in place of a long term (the caller defines the
+        names, e.g. :func:`~pisml_ros.ident.limiter.readable_equations`); without it every
+        equation is complete in itself, as the JSON's ``equations`` are."""
+        names = names or {}
         lines = []
         for j, name in enumerate(self.state_names):
             parts = []
@@ -163,6 +168,7 @@ class ExplicitModel:
                 if c == 0 or abs(c) <= threshold:
                     continue
                 coef = f"{c:.{digits}g}"
+                term = names.get(term, term)
                 parts.append(coef if term == "1" else f"{coef}*({term})" if any(ch in term for ch in "+- ")
                              else f"{coef}*{term}")
             rhs = " + ".join(parts).replace("+ -", "- ") or "0"

@@ -377,6 +377,7 @@ def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool
     from ..analysis.metrics import protocol_errors, spectrum_wasserstein
     from ..analysis.operating_point import undetermined_ug_ranges
     from ..data import read_dataset
+    from ..ident.limiter import readable_equations
     from ..plant import InverterPlant
     from ..report.figures import plot_spectra, plot_stability_scan, plot_trajectories
     from ..report.identification import plot_coefficients, plot_model_vs_data, plot_training_curves
@@ -400,7 +401,7 @@ def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool
         return 0
     model = model_from_message(final)
     model.save(out / "model.json")
-    (out / "equations.txt").write_text("\n".join(model.equations()) + "\n")
+    (out / "equations.txt").write_text("\n".join(readable_equations(model, digits=6)) + "\n")
     stability = {"model_id": final.model_id,
                  "operating_points": {f"{ug:g}": stability_dict(r) for ug, r in sorted(reports.items())},
                  "root_locus": locus, "ug_boundaries": locus["boundaries"] if locus else [],
@@ -441,7 +442,7 @@ def _report(out: Path, final, reports: dict, locus, bags: dict, say, quiet: bool
     # ------------------------------------------------------------------ what the user reads
     say(f"identified model {final.model_id}: {model.n_parameters} parameters over {len(model.terms)} terms"
         f" (full equations in {out / 'equations.txt'})")
-    for line in model.equations(digits=4):
+    for line in readable_equations(model, digits=4):
         n_terms = line.count(" + ") + line.count(" - ") + 1
         show("    " + (line if len(line) <= 160 else line[:150] + f" ... ({n_terms} terms)"))
     if 0.8 in spectra and len(spectra[0.8][0]) == len(spectra[0.8][1]):
