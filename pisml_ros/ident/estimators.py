@@ -795,8 +795,7 @@ class PISML(_Estimator):
         windows and pruned as noisy data are, and that family (``… from distilled``) joins the
         candidates. Recorded in the metadata (``refinement_growing_fallback``) and the metrics."""
         cfg = self.config
-        chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
-                                       hold).metadata["selection"]["chosen"]
+        chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold)
         if not scores[chosen] > cfg.clean_growing_error:
             return
         self._emit("refinement", 0.84)
@@ -826,8 +825,7 @@ class PISML(_Estimator):
         cfg = self.config
 
         def chosen_ratio():
-            chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
-                                           hold).metadata["selection"]["chosen"]
+            chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold)
             return chosen, scores[chosen] / max(floor, 1e-12)
 
         chosen, ratio = chosen_ratio()
@@ -875,8 +873,7 @@ class PISML(_Estimator):
         from .limiter import fit_reference_limit
 
         cfg = self.config
-        chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
-                                       hold).metadata["selection"]["chosen"]
+        chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold)
         threshold = cfg.selection_warn_noise_ratio * floor + cfg.selection_warn_noise_margin
         record = {"selected_before": chosen, "error_pct": scores[chosen], "threshold_pct": threshold,
                   "run": bool(scores[chosen] > threshold)}
@@ -916,8 +913,7 @@ class PISML(_Estimator):
         for k, (start, outcome) in enumerate(zip(starts, outcomes)):
             add(0, *outcome, suffix=" with limit" + ("" if k == 0 else f" from {start}"), start=start)
         record["added"] = sorted(set(candidates) - before)
-        chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold,
-                                       noise_floor=floor).metadata["selection"]["chosen"]
+        chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold, noise_floor=floor)
         record["selected_after"] = chosen
         record["seconds"] = time.monotonic() - started
         self.metrics_["limiter_seconds"] = record["seconds"]
@@ -940,8 +936,7 @@ class PISML(_Estimator):
         0.272 % (stop 48, 107-113 s). Recorded in the metadata (``refinement_unrestricted``) and
         the metrics."""
         cfg = self.config
-        chosen = _configured_selection(explicit, candidates, scores, cfg, verdicts,
-                                       hold).metadata["selection"]["chosen"]
+        chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold)
         # (a re-fit may be chosen on its merits: lost means no refinement ran through to a free run)
         lost = not any(np.isfinite(scores.get(name, np.inf)) for name in candidates
                        if _refinement_family(name) is not None)
@@ -977,6 +972,14 @@ def _configured_selection(template: ExplicitModel, candidates: dict, scores: dic
                      grid_stability=cfg.selection_grid_stability, noise_floor=noise_floor,
                      noise_ratio=cfg.selection_warn_noise_ratio, noise_margin=cfg.selection_warn_noise_margin,
                      refinement_expected=refinement_expected)
+
+
+def _would_choose(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig, verdicts: dict,
+                  hold: float, noise_floor: float | None = None) -> str:
+    """The name of the candidate :func:`_configured_selection` takes now (the fallbacks' question:
+    is the model the selection would take good enough?)."""
+    return _configured_selection(template, candidates, scores, cfg, verdicts, hold,
+                                 noise_floor=noise_floor).metadata["selection"]["chosen"]
 
 
 def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
