@@ -323,6 +323,9 @@ def test_pisml_pipeline_stages_and_model(train, small, test_set):
     assert min(selection["training_error_pct"].values()) < IdentConfig().clean_growing_error
     assert "refinement_growing_fallback" not in model.metadata
     assert not any(name.endswith("from distilled") for name in est.candidates_)
+    # every fit searches its records for a limit of a reference (stop 56): this plant has none
+    assert model.metadata["limiter"]["run"] and not model.metadata["limiter"]["found"]
+    assert not model.metadata["limiter"]["family"] and not any("with limit" in name for name in est.candidates_)
 
 
 def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_from_the_merged_model(train, small,

@@ -121,6 +121,11 @@ def test_readable_equations_write_the_limited_reference_as_named_signals_that_de
     # a record that does not say what the model's terms say: generic names, each term whole
     record["argument"] = {"d": {"1": 0.6, "il_d": 2.0}, "q": {"vc_q": -1.5}}
     assert readable_equations(model)[len(names):] == [f"where S{k + 1} = {t}" for k, t in enumerate(terms[2:])]
+    # a limit found that the model does without: said, with what that means for its response
+    unused = coef.copy()
+    unused[2:4] = 0.0
+    note = limit_note(ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, unused, model.metadata))
+    assert "the model chosen does not use it" in note and note.endswith("differ from the inverter's")
     # no such term: the equations as they are
     plain = ExplicitModel(STATE_NAMES, INPUT_NAMES, terms[:2], coef[:2])
     assert readable_equations(plain, digits=4) == plain.equations(digits=4)

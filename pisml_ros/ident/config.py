@@ -531,14 +531,15 @@ class IdentConfig:
     # 0.04 % against 0.1). The same three of the 60 recorded fits as 3x + 0.5, and on clean data it
     # also speaks up between 0.1 and 0.5 %, where the clean targets (0.05 / 0.1 %) are missed. (Seed
     # 19 itself is mended since stop 46 by the second start after the rescue, refine_rescue_ratio)
-    # where the model the selection would take scores above the caution's threshold below (ratio x
-    # noise floor + margin), search the records for a magnitude limit of a dq reference (a current
-    # limit: ident.limiter) and refine a family with its terms (estimators.PISML._limiter_family).
+    # search the records for a limit of a dq reference (a current limit: ident.limiter; every fit since
+    # stop 56, 4-10 s, reported by limiter.limit_note) and, where the model the selection would take
+    # scores above the caution's threshold below (ratio x noise floor + margin), refine a family with
+    # its terms (estimators.PISML._limiter_family).
     # Measured (stop 54, scratch /tmp/sat/run.py, the benchmark's saturation plant, IOD / OOD %):
     # clean recording 0 10.2 / 62.5 -> 0.022 / 0.093 (limit 2.2000 against 2.2); 40 dB recording 0
     # 5.23 / 62.9 -> 1.48 / 5.46 (one start, the model re-fitted with the terms: 0.94 / 7.44; with the
     # plant's own reference and limit instead of the fitted ones 0.36 / 1.07), recording 1
-    # 2.93 / 165 -> 2.29 / 7.50. On the default plant no fit reaches the threshold: nothing runs
+    # 2.93 / 165 -> 2.29 / 7.50. On the default plant no fit reaches the threshold: no family runs
     limiter_search: bool = True
     # samples per integral-form window of that search. Measured (stop 54, saturation plant at 40 dB,
     # recording 0; error of the fitted limited reference on the test records, rms, against 1.13): 10:
