@@ -277,12 +277,14 @@ def selection_record(model):
     rescue = model.metadata.get("refinement_rescue")  # noisy data: the second try's trigger (since stop 41)
     searches = {} if not rescue else {"rescue": {"ran": bool(rescue["run"]), "ratio": finite(rescue["ratio"]),
                                                  "noise_floor_pct": finite(rescue["noise_floor_pct"])}}
-    # since stop 55: the limit search (estimators.PISML._limiter_family), where it ran
+    # since stop 55: the limit search (estimators.PISML._limiter_family), where it ran (every fit since
+    # stop 56; "family": whether the candidates with its terms were refined, every search before)
     limiter = model.metadata.get("limiter") or {}
     if limiter.get("run"):
         found = limiter.get("limit") or {}
         searches["limiter"] = {"found": bool(limiter.get("found")), "kind": found.get("kind"),
                                "limit": found.get("limit"), "selected_after": limiter.get("selected_after"),
+                               "family": bool(limiter.get("family", True)),
                                "used": bool(found) and any(t in model.terms for t in found.get("terms", [])),
                                "seconds": finite(limiter.get("seconds") or limiter.get("fit_seconds"))}
     return {"selection": {**searches, "chosen": selection["chosen"], "tolerance": finite(selection.get("tolerance")),

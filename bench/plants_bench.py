@@ -130,14 +130,19 @@ def write(args, rows, started, final=False):
                      f"{len(noisy)}; an equilibrium at every grid point {len(whole)} of {len(noisy)}")
     searched = [r for r in rows if (r.get("selection") or {}).get("limiter")]
     if searched:
-        lines += ["", "The limit search (engine step 7: where the model the selection would take is far above the "
-                  "noise floor), per PISML fit that ran it:", ""]
+        lines += ["", "The limit search (engine step 7; every PISML fit since stop 56, its family of candidates "
+                  "refined where the model the selection would take is far above the noise floor), per PISML fit "
+                  "that ran it:", ""]
         for r in searched:
             found = r["selection"]["limiter"]
-            what = (f"{found['kind']} {', '.join(f'{m:.4g}' for m in found['limit'])}" if found["found"]
-                    else "nothing found")
-            lines.append(f"- {r['plant']} {r['seed']} {r['noise']} {r['method']}: {what}; "
-                         f"{'the model uses it' if found['used'] else 'the model chosen does not use it'} "
+            if found["found"]:
+                what = (f"{found['kind']} {', '.join(f'{m:.4g}' for m in found['limit'])}; "
+                        + ("the model uses it" if found["used"] else "the model chosen does not use it")
+                        + ("" if found.get("family", True) else
+                           " (no family: the model within the caution's threshold)"))
+            else:
+                what = "nothing found"
+            lines.append(f"- {r['plant']} {r['seed']} {r['noise']} {r['method']}: {what} "
                          f"(chosen: {r['selection']['chosen']}; {found['seconds'] or 0:.0f} s)")
     lines += ["", "Parameters (per unit; the rest as config/plant_nominal.yaml) and effects:", ""]
     for name in dict.fromkeys(r["plant"] for r in rows):

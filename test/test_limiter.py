@@ -107,7 +107,8 @@ def test_readable_equations_write_the_limited_reference_as_named_signals_that_de
     defined = {}
     for line in where:
         name, text = line[len("where "):].split(" = ", 1)
-        defined[sympy.Symbol(name)] = sympy.sympify(text, locals={**symbols, **{str(k): k for k in defined}}).subs(defined)
+        known = {**symbols, **{str(k): k for k in defined}}
+        defined[sympy.Symbol(name)] = sympy.sympify(text, locals=known).subs(defined)
     rng = np.random.default_rng(1)
     for _ in range(5):
         point = dict(zip(SIGNALS, rng.normal(scale=1.5, size=len(SIGNALS))))
