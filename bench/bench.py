@@ -32,6 +32,7 @@ from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum
 from pisml_ros.analysis.operating_point import identified_input_range
 from pisml_ros.ident import IdentConfig, make_estimator
 from pisml_ros.ident.library import monomial_basis
+from pisml_ros.ident.limiter import limit_in_use
 from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.noise import add_measurement_noise
 from pisml_ros.plant.scenarios import (Schedule, evaluation_schedules, generate, smallsignal_schedules,
@@ -285,7 +286,7 @@ def selection_record(model):
         searches["limiter"] = {"found": bool(limiter.get("found")), "kind": found.get("kind"),
                                "limit": found.get("limit"), "selected_after": limiter.get("selected_after"),
                                "family": bool(limiter.get("family", True)),
-                               "used": bool(found) and any(t in model.terms for t in found.get("terms", [])),
+                               "used": bool(limit_in_use(model)),
                                "seconds": finite(limiter.get("seconds") or limiter.get("fit_seconds"))}
     return {"selection": {**searches, "chosen": selection["chosen"], "tolerance": finite(selection.get("tolerance")),
                           "hold_error_pct": finite(selection.get("hold_error_pct")),

@@ -113,7 +113,7 @@ def cmd_identify(args) -> int:
     from .analysis.operating_point import identified_input_range
     from .data import concat_datasets, read_dataset
     from .ident import METHODS, ConfigError, IdentConfig, make_estimator, selection_warnings, settings_from_assignments
-    from .ident.limiter import limit_note, readable_equations
+    from .ident.limiter import limit_in_use, limit_note, readable_equations
 
     if args.method not in METHODS:
         raise UserError(f"--method {args.method}: choose one of {', '.join(METHODS)}")
@@ -180,7 +180,7 @@ def cmd_identify(args) -> int:
             "selection's equilibrium check and the stability prior rest on the small-signal records alone"))
     note = limit_note(model)
     if note:
-        print(f"  {note}")
+        print(f"  {'caution: ' if limit_in_use(model) is False else ''}{note}")
     for warning in selection_warnings(model):
         print(f"  caution: {warning}")
     if args.equations:

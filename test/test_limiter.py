@@ -6,8 +6,8 @@ import pytest
 
 from pisml_ros.ident import SignalRoles
 from pisml_ros.ident.library import integrator_row_mask, monomial_basis
-from pisml_ros.ident.limiter import (fit_reference_limit, is_limiter_term, limit_note, limiter_terms,
-                                     readable_equations)
+from pisml_ros.ident.limiter import (fit_reference_limit, is_limiter_term, limit_in_use, limit_note,
+                                     limiter_terms, readable_equations)
 from pisml_ros.model import ExplicitModel
 from pisml_ros.model.expressions import TermSet
 from pisml_ros.plant import InverterPlant
@@ -125,11 +125,14 @@ def test_readable_equations_write_the_limited_reference_as_named_signals_that_de
     # a limit found that the model does without: said, with what that means for its response
     unused = coef.copy()
     unused[2:4] = 0.0
-    note = limit_note(ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, unused, model.metadata))
+    without = ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, unused, model.metadata)
+    note = limit_note(without)
     assert "the model chosen does not use it" in note and note.endswith("differ from the inverter's")
+    assert limit_in_use(without) is False and limit_in_use(model) is True
     # no such term: the equations as they are
     plain = ExplicitModel(STATE_NAMES, INPUT_NAMES, terms[:2], coef[:2])
     assert readable_equations(plain, digits=4) == plain.equations(digits=4)
+    assert limit_in_use(plain) is None and limit_note(plain) is None
 
 
 @pytest.mark.slow

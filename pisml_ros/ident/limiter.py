@@ -362,15 +362,28 @@ class _LimitProblem:
         return p, 1.0 - 2.0 * sol.cost / self.without, int(np.sum(self.limited(p)[1]))
 
 
+def _found_limit(model) -> dict | None:
+    record = (getattr(model, "metadata", None) or {}).get("limiter") or {}
+    return record["limit"] if record.get("found") else None
+
+
+def limit_in_use(model) -> bool | None:
+    """Whether ``model`` uses the limit the engine found in its records (a term of it with a nonzero
+    coefficient), or None where none was searched for or found."""
+    found = _found_limit(model)
+    if found is None:
+        return None
+    return any(term in model.terms and bool(np.any(model.coefficients[model.terms.index(term)] != 0))
+               for term in found["terms"])
+
+
 def limit_note(model) -> str | None:
     """The limit the engine found in the records (``model.metadata["limiter"]``, from ``PISML``), in
     words for a user, or None where none was searched for or found."""
-    record = (getattr(model, "metadata", None) or {}).get("limiter") or {}
-    if not record.get("found"):
+    found = _found_limit(model)
+    if found is None:
         return None
-    found = record["limit"]
-    used = any(term in model.terms and np.any(model.coefficients[model.terms.index(term)] != 0)
-               for term in found["terms"])
+    used = limit_in_use(model)
     limits = np.atleast_1d(found["limit"])
     if found.get("kind", "magnitude") == "clamp":
         what, how = "a per-axis clamp", f"clamped to ±{limits[0]:.4g} (d) and ±{limits[-1]:.4g} (q)"

@@ -46,7 +46,7 @@ from ..data.dataset import records_at_rest  # noqa: E402
 from ..data.stream import TrajectoryBuffer  # noqa: E402
 from ..fileio import atomic_write_text, json_default  # noqa: E402
 from ..ident import IdentConfig, selection_warnings  # noqa: E402
-from ..ident.limiter import limit_note  # noqa: E402
+from ..ident.limiter import limit_in_use, limit_note  # noqa: E402
 from ..ident.worker import IdentificationWorker, RunResult  # noqa: E402
 from ..model import ExplicitModel  # noqa: E402
 from .conversions import model_message, overrides_from_assignments, overrides_from_fields  # noqa: E402
@@ -253,7 +253,9 @@ class IdentifierNode(Node):
                                    f"{job.result.n_parameters} parameters")
             note = limit_note(result.model)
             if note:
-                self.get_logger().info(f"run {job.model_id}: {note}")
+                # a limit the model does without is a caution: its response beyond the records is not the inverter's
+                log = self.get_logger().warning if limit_in_use(result.model) is False else self.get_logger().info
+                log(f"run {job.model_id}: {note}")
             for warning in selection_warnings(result.model):
                 self.get_logger().warning(f"run {job.model_id}: caution: {warning}")
         elif result.status == "cancelled" or (job.should_stop() and result.status == "failed"):
