@@ -532,7 +532,7 @@ class IdentConfig:
     # also speaks up between 0.1 and 0.5 %, where the clean targets (0.05 / 0.1 %) are missed. (Seed
     # 19 itself is mended since stop 46 by the second start after the rescue, refine_rescue_ratio)
     # search the records for a limit of a dq reference (a current limit: ident.limiter; every fit since
-    # stop 56, 4-10 s, reported by limiter.limit_note) and, where the model the selection would take
+    # stop 56, 2-9 s, reported by limiter.limit_note) and, where the model the selection would take
     # scores above the caution's threshold below (ratio x noise floor + margin), refine a family with
     # its terms (estimators.PISML._limiter_family).
     # Measured (stop 54, scratch /tmp/sat/run.py, the benchmark's saturation plant, IOD / OOD %):

@@ -852,7 +852,7 @@ class PISML(_Estimator):
                         refine_from, add):
         """The records may hold a saturation no library term has: a limit of a dq reference (its
         magnitude, or each axis) is fitted to them (:func:`~.limiter.fit_reference_limit`; every fit
-        since stop 56, 4–10 s on 2 cores, so that a limit acting in the records is reported,
+        since stop 56, 2–9 s on 2 cores, so that a limit acting in the records is reported,
         :func:`~.limiter.limit_note`, even where the model does without it). Where one is found
         and the model the selection would take reproduces the records far worse than their noise
         explains (the selection's caution: ``selection_warn_noise_ratio`` × ``floor`` +
