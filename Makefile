@@ -27,7 +27,8 @@ bags: env
 	$(VENV)/bin/pisml simulate --scenario test --seed 0 --out bags/test_clean
 	$(VENV)/bin/pisml simulate --scenario smallsignal --snr-db 40 --seed 0 --out bags/smallsignal_40dB
 
-# identification benchmark (paper protocol, ten 40 dB recordings; 16 min with five recordings at stop 34, 20-24 at stops 35-38, 27 at stop 39 with the host slow for part of the run, 23 at stop 40, 22-26 at stop 41, 25 at stop 42 on a slower host, 18-19 at stops 51-53 (stop 53: the Pure NODE baseline trained as the paper's, +1 min), 23 at stop 55, 28 at stop 56 on a host ~1.3x slower; 2 cores, target at most 30): bench/results.json, bench/RESULTS.md, bench/figures/
+# identification benchmark (paper protocol, ten 40 dB recordings; 23-28 min on 2 cores at stops 55-57, target at most 30;
+# earlier runs' times in docs/HISTORY.md): bench/results.json, bench/RESULTS.md, bench/figures/
 bench: env
 	$(PY) bench/bench.py
 
