@@ -27,7 +27,7 @@ bags: env
 	$(VENV)/bin/pisml simulate --scenario test --seed 0 --out bags/test_clean
 	$(VENV)/bin/pisml simulate --scenario smallsignal --snr-db 40 --seed 0 --out bags/smallsignal_40dB
 
-# identification benchmark (paper protocol, ten 40 dB recordings; 23-28 min on 2 cores at stops 55-57, target at most 30;
+# identification benchmark (paper protocol, ten 40 dB recordings; 23-28 min on 2 cores at stops 55-57 (target: 30);
 # earlier runs' times in docs/HISTORY.md): bench/results.json, bench/RESULTS.md, bench/figures/
 bench: env
 	$(PY) bench/bench.py
@@ -46,9 +46,10 @@ bench-plants: env
 	$(PY) bench/plants_bench.py
 
 # PISML on the default inverter with a limit of its current reference (a magnitude limit, a per-axis
-# clamp), two recordings each: bench/limits_results.json, bench/LIMITS_RESULTS.md (~20 min on 2 cores)
+# clamp) or of its voltage command (modulation), two recordings each: bench/limits_results.json,
+# bench/LIMITS_RESULTS.md (~17 min on 2 cores for the first two at stop 56; the third adds ~10)
 bench-limits: env
-	$(PY) bench/plants_bench.py --plants saturation,clamp --seeds 0,1 --out bench/limits_results.json --markdown bench/LIMITS_RESULTS.md
+	$(PY) bench/plants_bench.py --plants saturation,clamp,modulation --seeds 0,1 --out bench/limits_results.json --markdown bench/LIMITS_RESULTS.md
 
 # PISML on the protocol with one thing changed (sample rate, voltages, phase jumps, small-signal point,
 # record count/length; ~20 min on 2 cores at stop 38, 23 at stop 40): bench/scenarios_results.json, bench/SCENARIOS_RESULTS.md
