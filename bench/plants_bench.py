@@ -1,7 +1,7 @@
 """PISML on inverters whose parameters the engine was never tuned on, and on inverters with a limit.
 
     python bench/plants_bench.py [--plants standard,vendor-b,vendor-c] [--seeds 0,1,2] [--out FILE] [--markdown FILE]
-    python bench/plants_bench.py --plants saturation,clamp --seeds 0,1 --out bench/limits_results.json \
+    python bench/plants_bench.py --plants saturation,clamp,modulation --seeds 0,1 --out bench/limits_results.json \
         --markdown bench/LIMITS_RESULTS.md        (make bench-limits)
 
 Every setting of the engine was measured on the default inverter (config/plant_nominal.yaml). A
@@ -16,7 +16,7 @@ bench/PLANTS_RESULTS.md (~13 min on 2 cores with three seeds).
 
 The plants of PLANT_EFFECTS are the default inverter with a limit, active in part of the training
 records: of its current reference, the magnitude limit of the main benchmark's saturation plant and a
-per-axis clamp; of its voltage command, a magnitude limit (modulation saturation) (``make bench-limits``).
+per-axis clamp; of its voltage command, a magnitude limit: modulation saturation (``make bench-limits``).
 Their grid is where the plant has an equilibrium (the clamp has none below ug 0.8).
 """
 from __future__ import annotations
