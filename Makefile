@@ -47,7 +47,7 @@ bench-plants: env
 
 # PISML on the default inverter with a limit of its current reference (a magnitude limit, a per-axis
 # clamp) or of its voltage command (modulation), two recordings each: bench/limits_results.json,
-# bench/LIMITS_RESULTS.md (~17 min on 2 cores for the first two at stop 56; the third adds ~7)
+# bench/LIMITS_RESULTS.md (~26 min on 2 cores at stop 57)
 bench-limits: env
 	$(PY) bench/plants_bench.py --plants saturation,clamp,modulation --seeds 0,1 --out bench/limits_results.json --markdown bench/LIMITS_RESULTS.md
 
