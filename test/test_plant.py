@@ -263,3 +263,47 @@ def test_training_schedules_change_voltages_and_jumps_and_keep_the_rest():
         assert [s[0] for s in a.steps] == [s[0] for s in b.steps]
         sags = [(s[2] / a.ug0, t[2] / b.ug0) for s, t in zip(a.steps, b.steps) if s[1] == "ug"]
         assert all(math.isclose(x, y) for x, y in sags)
+
+
+# one plant per kind of effect, several of each (the gap workflow stacks such mixtures)
+STACKED = [{}, {"current_limit": {"imax": 1.5}}, {"current_limit": {"imax": 2.0, "kaw": 30.0}},
+           {"delay": {"td": 2e-4}}, {"delay": {"td": 3e-4, "order": 2}}, {"virtual_impedance": {"r": 0.02, "x": 0.1}},
+           {"virtual_impedance": {"i_th": 1.0, "k_r": 0.5}}, {"param_drift": {"Lf": 0.12}},
+           {"gain_mismatch": {"KpC": 0.3}}, {"frequency_limit": {"dw_max": 0.002}},
+           {"current_clamp": {"imax_d": 1.0, "imax_q": 1.5}}, {"voltage_limit": {"vmax": 1.2}}]
+
+
+def test_a_stack_of_plants_simulates_each_as_it_would_alone():
+    from pisml_ros.integrate import simulate_many
+    from pisml_ros.plant.stack import PlantStack
+
+    schedules, duration = schedules_for("test", seed=1)
+    trajs = generate(InverterPlant(), schedules, duration).trajectories
+    plants = [InverterPlant(effects=effects) for effects in STACKED]
+    stack = PlantStack(plants, [len(trajs)] * len(plants))
+    assert stack.n_states == 13 + 4  # padded to the longest delay (Padé 2)
+    starts = stack.full_state(np.stack([tr.x[0] for _ in plants for tr in trajs]),
+                              np.stack([tr.u[0] for _ in plants for tr in trajs]))
+    together = simulate_many(stack, list(starts), [tr.u for _ in plants for tr in trajs], 1e-4, substeps=1, n_out=13)
+    for i, (effects, plant) in enumerate(zip(STACKED, plants)):
+        alone = simulate_many(plant, [plant.full_state(tr.x[0], tr.u[0]) for tr in trajs], [tr.u for tr in trajs],
+                              1e-4, substeps=1, n_out=13)
+        for k, pred in enumerate(alone):
+            assert np.all(np.isfinite(pred))
+            if effects.get("delay", {}).get("order") == 2:  # a 2-term sum: einsum and matmul may round apart
+                np.testing.assert_allclose(together[i * len(trajs) + k], pred, rtol=0, atol=1e-11)
+            else:  # elementwise arithmetic: the same bits
+                assert np.array_equal(together[i * len(trajs) + k], pred), effects
+    with pytest.raises(NotImplementedError):
+        stack.equilibrium(0.8)
+
+
+def test_every_effect_with_neutral_values_leaves_the_plant_as_it_is():
+    x = InverterPlant().equilibrium(0.9) + 0.01
+    u = np.array([0.9, 0.1])
+    plain = InverterPlant().vector_field(x, u)
+    for name, spec in EFFECTS.items():
+        if spec.neutral is not None:
+            plant = InverterPlant()
+            plant.effects = {name: dict(spec.neutral)}  # infinite limits: a user's setting may not be (resolve_effects)
+            assert np.array_equal(plant.vector_field(x, u), plain), name

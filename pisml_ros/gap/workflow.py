@@ -24,6 +24,12 @@ from ..data.dataset import rest_start_length
 from ..ident.noise import estimate_noise_std, input_noise_std, piecewise_constant_inputs
 from ..signals import SCORED_STATES
 from .catalogue import Candidate, catalogue
+from .lockstep import Lockstep
+from .reference import simulate_references
+
+
+# relative step of the finite-difference probe that screens a drift or mismatch candidate
+_GAUSS_NEWTON_STEP = 0.05
 
 
 @dataclasses.dataclass
@@ -187,6 +193,11 @@ class GapWorkflow:
         substeps = max(1, self.settings.substeps // 2) if coarse else self.settings.substeps
         return ref.simulate(self.sim_data, substeps=substeps, traj_index=traj_index)
 
+    def _simulate_all(self, refs, traj_index=None, coarse: bool = False):
+        """:meth:`_simulate` of several references in one vectorised pass (the same numbers)."""
+        substeps = max(1, self.settings.substeps // 2) if coarse else self.settings.substeps
+        return simulate_references(refs, self.sim_data, substeps=substeps, traj_index=traj_index)
+
     def detect(self, preds) -> list[dict]:
         """Windows where the smoothed normalised residual leaves the noise band."""
         s = self.settings
@@ -234,12 +245,14 @@ class GapWorkflow:
     def _bic(self, sse, n, k):
         return n * math.log(max(sse, 1e-300) / n) + k * math.log(n)
 
-    def _fit(self, cand: Candidate, ref, traj_index, start) -> dict | None:
+    def _fit(self, cand: Candidate, ref, traj_index, start, simulate=None) -> dict | None:
+        """Least squares over ``cand``'s parameters; ``simulate(reference)`` gives its predictions
+        (default: :meth:`_simulate` on ``traj_index``)."""
         lo, hi = np.log(cand.lower), np.log(cand.upper)
+        simulate = simulate or (lambda r: self._simulate(r, traj_index))
 
         def residuals(logv):
-            r = ref.with_effects(cand.settings(np.exp(logv)))
-            return self._whitened(self._simulate(r, traj_index), traj_index)
+            return self._whitened(simulate(ref.with_effects(cand.settings(np.exp(logv)))), traj_index)
 
         try:
             res = scipy.optimize.least_squares(residuals, np.clip(np.log(start), lo + 1e-9, hi - 1e-9),
@@ -264,26 +277,33 @@ class GapWorkflow:
         base_sse, n = float(np.sum(base ** 2)), base.size
         base_bic = self._bic(base_sse, n, 0)
         context = self._context(ref)
-        coarse_base = self._whitened(self._simulate(ref, traj_index, coarse=True), traj_index)
+        # screening: every candidate's grid (and each drift / mismatch's one Gauss-Newton probe) in one pass
+        cands = [cand for cand in catalogue(ref.params) if cand.label not in skip_labels]
+        trials = [[_GAUSS_NEWTON_STEP] if cand.nominal else cand.grid(context) for cand in cands]
+        refs = [ref] + [ref.with_effects(cand.settings(np.array(cand.nominal, dtype=float) * (1 + values)
+                                                       if cand.nominal else values))
+                        for cand, grid in zip(cands, trials) for values in grid]
+        preds = iter(self._simulate_all(refs, traj_index, coarse=True))
+        coarse_base = self._whitened(next(preds), traj_index)
         screened = []
-        for cand in catalogue(ref.params):
-            if cand.label in skip_labels:
-                continue
+        for cand, grid in zip(cands, trials):
             if cand.nominal:
-                screened.append(self._screen_by_gauss_newton(cand, ref, traj_index, coarse_base))
+                screened.append(self._gauss_newton_step(cand, coarse_base, self._whitened(next(preds), traj_index)))
                 continue
             best = None
-            for values in cand.grid(context):
-                r = self._whitened(self._simulate(ref.with_effects(cand.settings(values)), traj_index, coarse=True),
-                                   traj_index)
-                sse = float(np.sum(r ** 2))
+            for values in grid:
+                sse = float(np.sum(self._whitened(next(preds), traj_index) ** 2))
                 if best is None or sse < best[0]:
                     best = (sse, values)
             screened.append((best[0], cand, best[1]))
         screened.sort(key=lambda item: item[0])
+        # the most promising candidates' fits side by side, their simulations in shared passes
+        top = screened[:self.settings.refine_top]
+        lockstep = Lockstep(lambda batch: self._simulate_all(batch, traj_index))
+        results = lockstep.run([lambda simulate, c=cand, v=values: self._fit(c, ref, traj_index, v, simulate)
+                                for _, cand, values in top])
         fits = []
-        for sse, cand, values in screened[:self.settings.refine_top]:
-            fit = self._fit(cand, ref, traj_index, values)
+        for (_, cand, _), fit in zip(top, results):
             if fit is not None:
                 fits.append(fit)
                 self.log(f"  {cand.label}: {dict(zip(cand.keys, np.round(fit['values'], 5)))} "
@@ -327,13 +347,14 @@ class GapWorkflow:
         self.log(f"joint refit of {[c.label for c in cands]}: SSE {sse:.4g}")
         return dict(effects[-1]["best"], sse=sse, n=res.fun.size)
 
-    def _screen_by_gauss_newton(self, cand, ref, traj_index, base):
-        """One finite-difference Gauss-Newton step from the nameplate value: predicted SSE and value."""
+    @staticmethod
+    def _gauss_newton_step(cand, base, r1):
+        """One finite-difference Gauss-Newton step from the nameplate value: predicted SSE and value.
+
+        ``base``: the whitened residual at the nameplate; ``r1``: at nameplate × (1 + step).
+        """
         v0 = np.array(cand.nominal, dtype=float)
-        step = 0.05
-        r1 = self._whitened(self._simulate(ref.with_effects(cand.settings(v0 * (1 + step))), traj_index,
-                                           coarse=True), traj_index)
-        g = (r1 - base) / np.log1p(step)  # d residual / d log(value)
+        g = (r1 - base) / np.log1p(_GAUSS_NEWTON_STEP)  # d residual / d log(value)
         gg = float(g @ g)
         if gg <= 0 or not np.isfinite(gg):
             return (float(base @ base), cand, v0)

@@ -26,6 +26,10 @@ class EffectSpec:
     defaults: Mapping[str, float]
     meanings: Mapping[str, str]
     positive: tuple[str, ...] = ()  # parameters that must be > 0
+    # values under which the effect leaves every signal as it is (the same bits), so that plants
+    # with and without it can be simulated as one stack (plant.stack); None: it changes the plant's
+    # parameters instead (param_drift, gain_mismatch) or its states (delay)
+    neutral: Mapping[str, float] | None = None
 
 
 EFFECTS: dict[str, EffectSpec] = {
@@ -38,6 +42,7 @@ EFFECTS: dict[str, EffectSpec] = {
             {"imax": 1.2, "kaw": 10.0},
             {"imax": "limit of |il*| (p.u.)", "kaw": "back-calculation gain (1/s per p.u.)"},
             positive=("imax",),
+            neutral={"imax": math.inf, "kaw": 0.0},
         ),
         EffectSpec(
             "current_clamp",
@@ -45,6 +50,7 @@ EFFECTS: dict[str, EffectSpec] = {
             {"imax_d": 1.0, "imax_q": 1.0},
             {"imax_d": "clamp of |il*_d| (p.u.)", "imax_q": "clamp of |il*_q| (p.u.)"},
             positive=("imax_d", "imax_q"),
+            neutral={"imax_d": math.inf, "imax_q": math.inf},
         ),
         EffectSpec(
             "voltage_limit",
@@ -53,6 +59,7 @@ EFFECTS: dict[str, EffectSpec] = {
             {"vmax": 1.1, "kaw": 10.0},
             {"vmax": "limit of |vi*| (p.u.)", "kaw": "back-calculation gain (1/s per p.u.)"},
             positive=("vmax",),
+            neutral={"vmax": math.inf, "kaw": 0.0},
         ),
         EffectSpec(
             "delay",
@@ -71,6 +78,7 @@ EFFECTS: dict[str, EffectSpec] = {
              "i_th": "threshold of |ig| for the current-limiting part (p.u.)",
              "k_r": "virtual resistance per p.u. of current above the threshold",
              "xr": "X/R ratio of the current-limiting part"},
+            neutral={"r": 0.0, "x": 0.0, "i_th": math.inf, "k_r": 0.0, "xr": 0.0},
         ),
         EffectSpec(
             "param_drift",
@@ -92,6 +100,7 @@ EFFECTS: dict[str, EffectSpec] = {
             {"dw_max": 0.005},
             {"dw_max": "largest frequency deviation (p.u.)"},
             positive=("dw_max",),
+            neutral={"dw_max": math.inf},
         ),
     )
 }

@@ -202,13 +202,19 @@ class InverterPlant:
         extra = []
         if self._delay is not None:
             a, b, cc_, dd = self._delay
-            order = len(b)
+            order = b.shape[-1]
             z_d = x[..., N_MEASURED:N_MEASURED + order]
             z_q = x[..., N_MEASURED + order:N_MEASURED + 2 * order]
-            dz_d = z_d @ a.T + vi_d[..., None] * b
-            dz_q = z_q @ a.T + vi_q[..., None] * b
-            vi_d = z_d @ cc_ + dd * vi_d
-            vi_q = z_q @ cc_ + dd * vi_q
+            if a.ndim == 2:
+                dz_d = z_d @ a.T + vi_d[..., None] * b
+                dz_q = z_q @ a.T + vi_q[..., None] * b
+                vi_d = z_d @ cc_ + dd * vi_d
+                vi_q = z_q @ cc_ + dd * vi_q
+            else:  # a stack of plants (plant.stack): one delay per row of the batch
+                dz_d = np.einsum("...ij,...j->...i", a, z_d) + vi_d[..., None] * b
+                dz_q = np.einsum("...ij,...j->...i", a, z_q) + vi_q[..., None] * b
+                vi_d = np.einsum("...j,...j->...", z_d, cc_) + dd * vi_d
+                vi_q = np.einsum("...j,...j->...", z_q, cc_) + dd * vi_q
             extra = [dz_d[..., k] for k in range(order)] + [dz_q[..., k] for k in range(order)]
 
         # LCL filter in the frame rotating at w: (L/wb) di/dt = v - R i - j w L i

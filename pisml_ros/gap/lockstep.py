@@ -1,0 +1,88 @@
+"""Several blocking searches whose expensive calls are gathered into batches.
+
+scipy's ``least_squares`` asks for one residual at a time, and the gap workflow
+fits several candidates, each with its own ``least_squares``. The simulation
+behind a residual costs about the same for one plant as for a stack of them
+(:class:`~pisml_ros.plant.stack.PlantStack`), so the candidates' searches run in
+threads, and each call they make waits until every search still running has
+made one: then all of them are simulated in one pass. Each search sees the same
+numbers as it would alone; only the wall time changes.
+"""
+from __future__ import annotations
+
+import threading
+from typing import Any, Callable, Sequence
+
+
+class Lockstep:
+    """Run tasks side by side, their calls to :meth:`call` answered in batches.
+
+    Parameters
+    ----------
+    batch : callable
+        ``batch(items) -> results``, one result per item, in order.
+    """
+
+    def __init__(self, batch: Callable[[list], Sequence]):
+        self._batch = batch
+        self._lock = threading.Condition()
+        self._pending: list = []
+        self._active = 0
+
+    def run(self, tasks: Sequence[Callable[[Callable[[Any], Any]], Any]]) -> list:
+        """Run ``task(call)`` for each task, each in its own thread; their return values, in order.
+
+        A task's exception is raised here once every task has ended.
+        """
+        results: list = [None] * len(tasks)
+        errors: list = []
+        self._active = len(tasks)
+
+        def work(index, task):
+            try:
+                results[index] = task(self.call)
+            except BaseException as err:  # re-raised in the caller's thread
+                errors.append(err)
+            finally:
+                with self._lock:
+                    self._active -= 1
+                    self._answer_if_all_waiting()
+
+        threads = [threading.Thread(target=work, args=(k, task), daemon=True) for k, task in enumerate(tasks)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        if errors:
+            raise errors[0]
+        return results
+
+    def call(self, item):
+        """Submit one item; returns its result once the batch it joined has run."""
+        slot: dict = {}
+        with self._lock:
+            self._pending.append((item, slot))
+            self._answer_if_all_waiting()
+            while not slot:
+                self._lock.wait()
+        if "error" in slot:
+            raise slot["error"]
+        return slot["result"]
+
+    def _answer_if_all_waiting(self):
+        # called with the lock held: every running task is waiting for an answer, so none can add one
+        if not self._pending or len(self._pending) < self._active:
+            return
+        batch, self._pending = self._pending, []
+        try:
+            answers = self._batch([item for item, _ in batch])
+        except Exception:  # one item's failure must not fail the others: answer each alone
+            for item, slot in batch:
+                try:
+                    slot["result"] = self._batch([item])[0]
+                except Exception as err:
+                    slot["error"] = err
+        else:
+            for (_, slot), answer in zip(batch, answers):
+                slot["result"] = answer
+        self._lock.notify_all()

@@ -1,0 +1,55 @@
+"""The gap workflow's lockstep: searches run side by side, their calls answered in shared batches."""
+import pytest
+
+from pisml_ros.gap.lockstep import Lockstep
+
+
+def _search(start, calls):
+    # a stand-in for least_squares: each call depends on the previous answer
+    def task(call):
+        value = start
+        for _ in range(calls):
+            value = call(value)
+        return value
+    return task
+
+
+def test_calls_are_batched_while_every_task_runs_and_answers_are_each_callers_own():
+    sizes = []
+
+    def batch(items):
+        sizes.append(len(items))
+        return [2 * item + 1 for item in items]
+
+    results = Lockstep(batch).run([_search(1, 3), _search(10, 5), _search(100, 1)])
+    assert results == [15, 351, 201]  # as each search alone
+    # three calls together while all three run, then two, then one
+    assert sizes == [3, 2, 2, 1, 1]
+
+
+def test_a_failing_item_fails_only_its_caller_and_a_failing_task_is_raised_after_all_end():
+    def batch(items):
+        if 0 in items:
+            raise ValueError("cannot simulate 0")
+        return items
+
+    finished = []
+
+    def tolerant(call):
+        try:
+            call(0)
+        except ValueError:
+            finished.append("tolerant")
+        return "done"
+
+    def failing(call):
+        call(0)
+
+    def slow(call):
+        for _ in range(4):
+            call(1)
+        finished.append("slow")
+
+    with pytest.raises(ValueError, match="cannot simulate 0"):
+        Lockstep(batch).run([tolerant, failing, slow])
+    assert sorted(finished) == ["slow", "tolerant"]
