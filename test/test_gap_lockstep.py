@@ -53,3 +53,28 @@ def test_a_failing_item_fails_only_its_caller_and_a_failing_task_is_raised_after
     with pytest.raises(ValueError, match="cannot simulate 0"):
         Lockstep(batch).run([tolerant, failing, slow])
     assert sorted(finished) == ["slow", "tolerant"]
+
+
+def test_a_lockstep_map_batches_the_columns_of_scipys_jacobian_and_changes_no_number():
+    import numpy as np
+    import scipy.optimize
+
+    from pisml_ros.gap.lockstep import LockstepMap, current_call
+
+    sizes = []
+
+    def batch(items):
+        sizes.append(len(items))
+        return [np.array([x[0] - 1.0, x[1] ** 2 - 4.0, x[0] * x[2] - 3.0]) for x in items]
+
+    def residuals(x):
+        call = current_call()  # inside the map's tasks: joined with the other columns
+        return call(x) if call is not None else batch([x])[0]
+
+    alone = scipy.optimize.least_squares(residuals, [0.5, 1.0, 1.0], method="trf", diff_step=1e-3)
+    sizes.clear()
+    mapped = scipy.optimize.least_squares(residuals, [0.5, 1.0, 1.0], method="trf", diff_step=1e-3,
+                                          workers=LockstepMap(batch))
+    assert np.array_equal(alone.x, mapped.x) and alone.nfev == mapped.nfev
+    assert 3 in sizes  # the three columns of a Jacobian in one batch
+    np.testing.assert_allclose(mapped.x, [1.0, 2.0, 3.0], atol=1e-6)

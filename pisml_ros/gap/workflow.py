@@ -24,7 +24,7 @@ from ..data.dataset import rest_start_length
 from ..ident.noise import estimate_noise_std, input_noise_std, piecewise_constant_inputs
 from ..signals import SCORED_STATES
 from .catalogue import Candidate, catalogue
-from .lockstep import Lockstep
+from .lockstep import Lockstep, LockstepMap, current_call
 from .reference import simulate_references
 
 
@@ -245,14 +245,18 @@ class GapWorkflow:
     def _bic(self, sse, n, k):
         return n * math.log(max(sse, 1e-300) / n) + k * math.log(n)
 
-    def _fit(self, cand: Candidate, ref, traj_index, start, simulate=None) -> dict | None:
-        """Least squares over ``cand``'s parameters; ``simulate(reference)`` gives its predictions
-        (default: :meth:`_simulate` on ``traj_index``)."""
+    def _simulate_here(self, ref, traj_index):
+        """:meth:`_simulate`, joined with the other tasks' where this thread runs in a lockstep."""
+        call = current_call()
+        return call(ref) if call is not None else self._simulate(ref, traj_index)
+
+    def _fit(self, cand: Candidate, ref, traj_index, start) -> dict | None:
+        """Least squares over ``cand``'s parameters on the trajectories ``traj_index``."""
         lo, hi = np.log(cand.lower), np.log(cand.upper)
-        simulate = simulate or (lambda r: self._simulate(r, traj_index))
 
         def residuals(logv):
-            return self._whitened(simulate(ref.with_effects(cand.settings(np.exp(logv)))), traj_index)
+            return self._whitened(self._simulate_here(ref.with_effects(cand.settings(np.exp(logv))), traj_index),
+                                  traj_index)
 
         try:
             res = scipy.optimize.least_squares(residuals, np.clip(np.log(start), lo + 1e-9, hi - 1e-9),
@@ -300,7 +304,7 @@ class GapWorkflow:
         # the most promising candidates' fits side by side, their simulations in shared passes
         top = screened[:self.settings.refine_top]
         lockstep = Lockstep(lambda batch: self._simulate_all(batch, traj_index))
-        results = lockstep.run([lambda simulate, c=cand, v=values: self._fit(c, ref, traj_index, v, simulate)
+        results = lockstep.run([lambda _, c=cand, v=values: self._fit(c, ref, traj_index, v)
                                 for _, cand, values in top])
         fits = []
         for (_, cand, _), fit in zip(top, results):
@@ -329,10 +333,12 @@ class GapWorkflow:
             return ref
 
         def residuals(logv):
-            return self._whitened(self._simulate(build(logv), traj_index), traj_index)
+            return self._whitened(self._simulate_here(build(logv), traj_index), traj_index)
 
+        # the Jacobian's columns (one per parameter) simulated in one pass
         res = scipy.optimize.least_squares(residuals, np.clip(start, lo + 1e-9, hi - 1e-9), bounds=(lo, hi),
-                                           method="trf", diff_step=1e-3, max_nfev=self.settings.max_nfev)
+                                           method="trf", diff_step=1e-3, max_nfev=self.settings.max_nfev,
+                                           workers=LockstepMap(lambda batch: self._simulate_all(batch, traj_index)))
         values = np.exp(res.x)
         try:
             cov = np.linalg.pinv(res.jac.T @ res.jac) * float(np.sum(res.fun ** 2)) / max(res.fun.size - len(values), 1)
