@@ -39,6 +39,15 @@ def test_simulate_bag_with_effect_and_info(tmp_path):
     assert "2 trajectories" in text and "ig_q" in text
 
 
+def test_simulate_says_which_record_cannot_start_at_rest_under_a_tight_limit(tmp_path):
+    # the training scenario's 5th record starts at ug 1.2, where a 1.5 p.u. current limit leaves no equilibrium
+    refused = pisml("simulate", "--scenario", "train", "--n-traj", "5", "--effect-param", "current_limit.imax=1.5",
+                    "--out", tmp_path / "never", check=False)
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr, refused.stderr
+    assert "trajectory 4 starts at rest at ug0 = 1.199" in refused.stderr and "current_limit" in refused.stderr
+    assert not (tmp_path / "never").exists()
+
+
 def test_analyse_plant_json():
     report = json.loads(pisml("analyse", "--model", "plant", "--ug", "0.8", "--theta-g", "0", "--json").stdout)
     assert set(report) >= {"operating_point", "eigenvalues", "damping", "max_real", "stable"}

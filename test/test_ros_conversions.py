@@ -128,3 +128,6 @@ def test_measurement_sim_source_puts_noise_on_the_inputs_only_when_asked():
     assert states_only.metadata["noise_std"]["ug"] == 0.0 and both.metadata["noise_std"]["ug"] > 0.005
     with pytest.raises(ValueError, match="parameter noisy_inputs: needs snr_db > 0"):
         load_source("sim", "", "smallsignal", 0, 0.0, "", [""], [""], noisy_inputs=True)
+    # a configuration the plant cannot start from: a one-line configuration error, not a traceback
+    with pytest.raises(ValueError, match="trajectory 4 starts at rest at ug0 = 1.199 p.u."):
+        load_source("sim", "", "train", 0, 0.0, "", [""], ["current_limit.imax=1.5"])

@@ -106,6 +106,20 @@ def schedules_for(scenario: str, seed: int = 0, n_traj: int | None = None, durat
     raise ValueError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
 
 
+def _start(plant, index: int, schedule: Schedule) -> np.ndarray:
+    """The rest state a record starts from; an error that names the record where there is none."""
+    from .model import EquilibriumError
+
+    try:
+        return plant.equilibrium(schedule.ug0, schedule.theta0)
+    except EquilibriumError as err:
+        effects = ", ".join(f"{name} {values}" for name, values in getattr(plant, "effects", {}).items())
+        raise EquilibriumError(
+            f"trajectory {index} starts at rest at ug0 = {schedule.ug0:.4g} p.u., theta0 = {schedule.theta0:.4g} "
+            f"rad, and the plant{' with ' + effects if effects else ''} has no equilibrium there "
+            f"(a limit too tight for that operating point?)") from err
+
+
 def generate(plant, schedules: list[Schedule], duration: float, dt: float = 1.0 / SAMPLE_RATE_HZ,
              method: str = "rk4", metadata: dict | None = None) -> Dataset:
     """Simulate schedules from equilibrium; the dataset holds the 13 measured states.
@@ -116,7 +130,7 @@ def generate(plant, schedules: list[Schedule], duration: float, dt: float = 1.0 
         Clean (noise-free) measurements with provenance metadata.
     """
     n = int(round(duration / dt)) + 1
-    x0 = np.stack([plant.equilibrium(s.ug0, s.theta0) for s in schedules])
+    x0 = np.stack([_start(plant, k, s) for k, s in enumerate(schedules)])
     inputs = np.stack([s.sample(n, dt) for s in schedules])
     states = simulate(plant, x0, inputs, dt, method=method)
     n_meas = len(plant.state_names)
