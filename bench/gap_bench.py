@@ -1,11 +1,13 @@
 """Benchmark of the gap workflow: hidden effects in virtual-HIL data, named or not, how well, how fast.
 
-    python bench/gap_bench.py [--quick] [--out bench/gap_results.json]
+    python bench/gap_bench.py [--quick] [--out bench/gap_results.json] [--markdown bench/GAP_RESULTS.md]
 
 For every case the virtual HIL generates data with an effect hidden (the reference
 is the nameplate plant without effects), clean and at 40 dB SNR; the workflow must
 name the effect, fit its main parameter within 10 % and shrink the gap. Prints one
-line per case and writes the results JSON and bench/GAP_RESULTS.md.
+line per case and writes the results JSON and markdown (``--quick``, a subset of the cases: by
+default bench/gap_results_quick.json and bench/GAP_RESULTS_quick.md, so that the full matrix's
+files stay as they are).
 """
 from __future__ import annotations
 
@@ -71,8 +73,14 @@ def run_case(effects, scenario, snr, seed=1):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="a subset of the cases")
-    parser.add_argument("--out", default="bench/gap_results.json")
+    parser.add_argument("--out", help="results JSON (default: bench/gap_results.json, --quick: "
+                                      "bench/gap_results_quick.json)")
+    parser.add_argument("--markdown", help="results table (default: bench/GAP_RESULTS.md, --quick: "
+                                           "bench/GAP_RESULTS_quick.md)")
     args = parser.parse_args(argv)
+    suffix = "_quick" if args.quick else ""
+    out = Path(args.out or f"bench/gap_results{suffix}.json")
+    markdown = Path(args.markdown or f"bench/GAP_RESULTS{suffix}.md")
     cases = [CASES[k] for k in QUICK] if args.quick else CASES
     results = []
     for effects, scenario, label, key, truth in cases:
@@ -106,7 +114,6 @@ def main(argv=None) -> int:
         "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0], "platform": platform.platform()},
         "command": "python bench/gap_bench.py" + (" --quick" if args.quick else ""),
     }
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"summary": summary, "results": results}, indent=2, default=float) + "\n")
     lines = ["# Gap workflow benchmark", "", f"`{summary['command']}` — {summary['correct']}/{summary['cases']} "
@@ -122,8 +129,9 @@ def main(argv=None) -> int:
         lines.append(f"| {r['expected'] or 'none'} {json.dumps(r['effects'])} | {r['scenario']}, "
                      f"{'clean' if r['snr_db'] is None else '40 dB'} | {'✔ ' if r['correct'] else '✘ '}"
                      f"{r['named'] or '-'} | {err} | {gap} | {r['seconds']:.0f} s |")
-    Path(out.parent / "GAP_RESULTS.md").write_text("\n".join(lines) + "\n")
-    print(f"{summary['correct']}/{summary['cases']} correct; results in {out} and {out.parent / 'GAP_RESULTS.md'}")
+    markdown.parent.mkdir(parents=True, exist_ok=True)
+    markdown.write_text("\n".join(lines) + "\n")
+    print(f"{summary['correct']}/{summary['cases']} correct; results in {out} and {markdown}")
     return 0 if summary["correct"] == summary["cases"] else 1
 
 
