@@ -283,10 +283,9 @@ class GapWorkflow:
         context = self._context(ref)
         # screening: every candidate's grid (and each drift / mismatch's one Gauss-Newton probe) in one pass
         cands = [cand for cand in catalogue(ref.params) if cand.label not in skip_labels]
-        trials = [[_GAUSS_NEWTON_STEP] if cand.nominal else cand.grid(context) for cand in cands]
-        refs = [ref] + [ref.with_effects(cand.settings(np.array(cand.nominal, dtype=float) * (1 + values)
-                                                       if cand.nominal else values))
-                        for cand, grid in zip(cands, trials) for values in grid]
+        trials = [[np.array(cand.nominal, dtype=float) * (1 + _GAUSS_NEWTON_STEP)] if cand.nominal
+                  else cand.grid(context) for cand in cands]
+        refs = [ref] + [ref.with_effects(cand.settings(values)) for cand, grid in zip(cands, trials) for values in grid]
         preds = iter(self._simulate_all(refs, traj_index, coarse=True))
         coarse_base = self._whitened(next(preds), traj_index)
         screened = []
