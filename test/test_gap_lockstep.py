@@ -1,7 +1,28 @@
 """The gap workflow's lockstep: searches run side by side, their calls answered in shared batches."""
+import threading
+
 import pytest
 
 from pisml_ros.gap.lockstep import Lockstep
+
+
+def _run(lockstep, tasks, timeout=20.0):
+    # a lost wake-up would hang the tasks: fail instead
+    out = {}
+
+    def target():
+        try:
+            out["results"] = lockstep.run(tasks)
+        except BaseException as err:
+            out["error"] = err
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    thread.join(timeout)
+    assert not thread.is_alive(), "the lockstep hung"
+    if "error" in out:
+        raise out["error"]
+    return out["results"]
 
 
 def _search(start, calls):
@@ -21,8 +42,8 @@ def test_calls_are_batched_while_every_task_runs_and_answers_are_each_callers_ow
         sizes.append(len(items))
         return [2 * item + 1 for item in items]
 
-    results = Lockstep(batch).run([_search(1, 3), _search(10, 5), _search(100, 1)])
-    assert results == [15, 351, 201]  # as each search alone
+    results = _run(Lockstep(batch), [_search(1, 3), _search(10, 5), _search(100, 1), _search(7, 0)])
+    assert results == [15, 351, 201, 7]  # as each search alone
     # three calls together while all three run, then two, then one
     assert sizes == [3, 2, 2, 1, 1]
 
@@ -50,9 +71,19 @@ def test_a_failing_item_fails_only_its_caller_and_a_failing_task_is_raised_after
             call(1)
         finished.append("slow")
 
-    with pytest.raises(ValueError, match="cannot simulate 0"):
-        Lockstep(batch).run([tolerant, failing, slow])
+    def raises_at_once(call):
+        raise KeyError("before any call")
+
+    with pytest.raises(ValueError, match="cannot simulate 0"):  # the first failing task's error
+        _run(Lockstep(batch), [tolerant, failing, raises_at_once, slow])
     assert sorted(finished) == ["slow", "tolerant"]
+
+
+def test_a_batch_that_answers_too_few_items_fails_those_calls_instead_of_hanging_them():
+    def short(items):
+        return items[:1] if len(items) > 1 else items
+
+    assert _run(Lockstep(short), [_search(1, 2), _search(2, 2)]) == [1, 2]  # answered one by one instead
 
 
 def test_a_lockstep_map_batches_the_columns_of_scipys_jacobian_and_changes_no_number():

@@ -1,4 +1,5 @@
 """The virtual HIL plant against the facts of DESIGN.md and the reference eigenvalues."""
+import dataclasses
 import json
 import math
 
@@ -273,7 +274,7 @@ STACKED = [{}, {"current_limit": {"imax": 1.5}}, {"current_limit": {"imax": 2.0,
            {"current_clamp": {"imax_d": 1.0, "imax_q": 1.5}}, {"voltage_limit": {"vmax": 1.2}}]
 
 
-def test_a_stack_of_plants_simulates_each_as_it_would_alone():
+def test_a_stack_of_plants_simulates_each_as_it_would_alone(monkeypatch):
     from pisml_ros.integrate import simulate_many
     from pisml_ros.plant.stack import PlantStack
 
@@ -296,6 +297,13 @@ def test_a_stack_of_plants_simulates_each_as_it_would_alone():
                 assert np.array_equal(together[i * len(trajs) + k], pred), effects
     with pytest.raises(NotImplementedError):
         stack.equilibrium(0.8)
+    from pisml_ros.plant import effects as effects_module
+
+    # an effect the stack does not know how to switch off must not be dropped silently
+    monkeypatch.setitem(effects_module.EFFECTS, "current_clamp",
+                        dataclasses.replace(EFFECTS["current_clamp"], neutral=None))
+    with pytest.raises(ValueError, match="current_clamp has no neutral values"):
+        PlantStack(plants, [1] * len(plants))
 
 
 def test_every_effect_with_neutral_values_leaves_the_plant_as_it_is():
@@ -306,4 +314,7 @@ def test_every_effect_with_neutral_values_leaves_the_plant_as_it_is():
         if spec.neutral is not None:
             plant = InverterPlant()
             plant.effects = {name: dict(spec.neutral)}  # infinite limits: a user's setting may not be (resolve_effects)
-            assert np.array_equal(plant.vector_field(x, u), plain), name
+            rates, signals = plant.evaluate(x, u)
+            assert np.array_equal(rates, plain), name
+            for key, value in InverterPlant().internal_signals(x, u).items():
+                assert np.array_equal(signals[key], value), (name, key)

@@ -6,7 +6,8 @@ behind a residual costs about the same for one plant as for a stack of them
 (:class:`~pisml_ros.plant.stack.PlantStack`), so the candidates' searches run in
 threads, and each call they make waits until every search still running has
 made one: then all of them are simulated in one pass. Each search sees the same
-numbers as it would alone; only the wall time changes. :class:`LockstepMap` does
+numbers as it would alone (a stack gives each row its own plant's bits; Padé-2 delays
+aside, whose stacked rows round apart by ~1e-14); only the wall time changes. :class:`LockstepMap` does
 the same for the columns of a finite-difference Jacobian (scipy's ``workers``).
 """
 from __future__ import annotations
@@ -40,10 +41,11 @@ class Lockstep:
     def run(self, tasks: Sequence[Callable[[Callable[[Any], Any]], Any]]) -> list:
         """Run ``task(call)`` for each task, each in its own thread; their return values, in order.
 
-        A task's exception is raised here once every task has ended.
+        A task's exception is raised here once every task has ended (the first task's, where
+        several fail).
         """
         results: list = [None] * len(tasks)
-        errors: list = []
+        errors: dict = {}
         self._active = len(tasks)
 
         def work(index, task):
@@ -51,7 +53,7 @@ class Lockstep:
             try:
                 results[index] = task(self.call)
             except BaseException as err:  # re-raised in the caller's thread
-                errors.append(err)
+                errors[index] = err
             finally:
                 with self._lock:
                     self._active -= 1
@@ -63,7 +65,7 @@ class Lockstep:
         for thread in threads:
             thread.join()
         if errors:
-            raise errors[0]
+            raise errors[min(errors)]
         return results
 
     def call(self, item):
@@ -84,17 +86,27 @@ class Lockstep:
             return
         batch, self._pending = self._pending, []
         try:
-            answers = self._batch([item for item, _ in batch])
-        except Exception:  # one item's failure must not fail the others: answer each alone
-            for item, slot in batch:
-                try:
-                    slot["result"] = self._batch([item])[0]
-                except Exception as err:
-                    slot["error"] = err
-        else:
+            try:
+                answers = [{"result": answer} for answer in self._batch([item for item, _ in batch])]
+                if len(answers) != len(batch):
+                    raise RuntimeError(f"a batch of {len(batch)} items gave {len(answers)} answers")
+            except Exception:  # one item's failure must not fail the others: answer each alone
+                answers = [self._alone(item) for item, _ in batch]
             for (_, slot), answer in zip(batch, answers):
-                slot["result"] = answer
-        self._lock.notify_all()
+                slot.update(answer)
+        except BaseException as err:  # whatever happens here, no caller may wait forever
+            for _, slot in batch:
+                if not slot:
+                    slot["error"] = err
+            raise
+        finally:
+            self._lock.notify_all()
+
+    def _alone(self, item) -> dict:
+        try:
+            return {"result": self._batch([item])[0]}
+        except Exception as err:
+            return {"error": err}
 
 
 class LockstepMap:

@@ -93,6 +93,10 @@ class ModelReference:
                 "residual": self.residual.to_dict() if self.residual is not None else None}
 
 
+# rows × samples of one stacked simulation (its states alone take ~140 bytes a row-sample)
+_MAX_ROW_SAMPLES = 1_000_000
+
+
 class _StackWithResidual:
     """A plant stack plus the references' common `unnamed` residual terms."""
 
@@ -110,7 +114,8 @@ def simulate_references(references, dataset: Dataset, substeps: int = 2, traj_in
     """Each reference's predictions (as its ``simulate`` gives them), all in one vectorised pass.
 
     Plant references with the same residual terms are simulated as one :class:`PlantStack` (the
-    same numbers as one by one, in about the time of one); any other reference on its own.
+    same numbers as one by one — Padé-2 delays aside, ~1e-14 apart — in about the time of one),
+    at most ``_MAX_ROW_SAMPLES`` rows × samples a pass; any other reference on its own.
     """
     references = list(references)
     out: list = [None] * len(references)
@@ -126,16 +131,19 @@ def simulate_references(references, dataset: Dataset, substeps: int = 2, traj_in
     for k in index:
         per_length.setdefault(len(dataset.trajectories[k].u), []).append(k)
     preds = {i: {} for i in stackable}
-    for members in per_length.values():
+    for length, members in per_length.items():
         trajs = [dataset.trajectories[k] for k in members]
-        stack = PlantStack([references[i].plant for i in stackable], [len(trajs)] * len(stackable))
-        starts = stack.full_state(np.stack([tr.x[0] for _ in stackable for tr in trajs]),
-                                  np.stack([tr.u[0] for _ in stackable for tr in trajs]))
-        rows = simulate_many(_StackWithResidual(stack, references[stackable[0]].residual), list(starts),
-                             [tr.u for _ in stackable for tr in trajs], dataset.dt, substeps=substeps,
-                             n_out=len(dataset.state_names))
-        for j, i in enumerate(stackable):
-            preds[i].update(zip(members, rows[j * len(trajs):(j + 1) * len(trajs)]))
+        per_pass = max(1, _MAX_ROW_SAMPLES // (len(trajs) * length))  # long records: fewer plants a pass
+        for first in range(0, len(stackable), per_pass):
+            chunk = stackable[first:first + per_pass]
+            stack = PlantStack([references[i].plant for i in chunk], [len(trajs)] * len(chunk))
+            starts = stack.full_state(np.stack([tr.x[0] for _ in chunk for tr in trajs]),
+                                      np.stack([tr.u[0] for _ in chunk for tr in trajs]))
+            rows = simulate_many(_StackWithResidual(stack, references[chunk[0]].residual), list(starts),
+                                 [tr.u for _ in chunk for tr in trajs], dataset.dt, substeps=substeps,
+                                 n_out=len(dataset.state_names))
+            for j, i in enumerate(chunk):
+                preds[i].update(zip(members, rows[j * len(trajs):(j + 1) * len(trajs)]))
     for i in stackable:
         out[i] = [preds[i][k] for k in index]
     return out

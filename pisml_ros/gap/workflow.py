@@ -13,6 +13,7 @@ how much does adding it shrink the gap.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 import time
 
@@ -30,6 +31,9 @@ from .reference import simulate_references
 
 # relative step of the finite-difference probe that screens a drift or mismatch candidate
 _GAUSS_NEWTON_STEP = 0.05
+# scipy >= 1.16 evaluates a finite-difference Jacobian's columns through a map (`workers`): then they
+# share one stacked simulation; older scipy (a ROS distribution's python3-scipy) evaluates them in turn
+_LEAST_SQUARES_MAP = "workers" in inspect.signature(scipy.optimize.least_squares).parameters
 
 
 @dataclasses.dataclass
@@ -248,7 +252,20 @@ class GapWorkflow:
     def _simulate_here(self, ref, traj_index):
         """:meth:`_simulate`, joined with the other tasks' where this thread runs in a lockstep."""
         call = current_call()
-        return call(ref) if call is not None else self._simulate(ref, traj_index)
+        if call is None:
+            return self._simulate(ref, traj_index)
+        return call((ref, None if traj_index is None else tuple(traj_index)))
+
+    def _simulate_items(self, items):
+        """:meth:`_simulate` of (reference, trajectory indices) items, those on the same trajectories in one pass."""
+        out: list = [None] * len(items)
+        groups: dict = {}
+        for n, (_, index) in enumerate(items):
+            groups.setdefault(index, []).append(n)
+        for index, members in groups.items():
+            for n, preds in zip(members, self._simulate_all([items[n][0] for n in members], index)):
+                out[n] = preds
+        return out
 
     def _fit(self, cand: Candidate, ref, traj_index, start) -> dict | None:
         """Least squares over ``cand``'s parameters on the trajectories ``traj_index``."""
@@ -302,7 +319,7 @@ class GapWorkflow:
         screened.sort(key=lambda item: item[0])
         # the most promising candidates' fits side by side, their simulations in shared passes
         top = screened[:self.settings.refine_top]
-        lockstep = Lockstep(lambda batch: self._simulate_all(batch, traj_index))
+        lockstep = Lockstep(self._simulate_items)
         results = lockstep.run([lambda _, c=cand, v=values: self._fit(c, ref, traj_index, v)
                                 for _, cand, values in top])
         fits = []
@@ -335,9 +352,9 @@ class GapWorkflow:
             return self._whitened(self._simulate_here(build(logv), traj_index), traj_index)
 
         # the Jacobian's columns (one per parameter) simulated in one pass
+        columns = {"workers": LockstepMap(self._simulate_items)} if _LEAST_SQUARES_MAP else {}
         res = scipy.optimize.least_squares(residuals, np.clip(start, lo + 1e-9, hi - 1e-9), bounds=(lo, hi),
-                                           method="trf", diff_step=1e-3, max_nfev=self.settings.max_nfev,
-                                           workers=LockstepMap(lambda batch: self._simulate_all(batch, traj_index)))
+                                           method="trf", diff_step=1e-3, max_nfev=self.settings.max_nfev, **columns)
         values = np.exp(res.x)
         try:
             cov = np.linalg.pinv(res.jac.T @ res.jac) * float(np.sum(res.fun ** 2)) / max(res.fun.size - len(values), 1)

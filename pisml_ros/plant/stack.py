@@ -24,6 +24,10 @@ from .effects import EFFECTS
 from .model import N_MEASURED, InverterPlant
 
 
+# effects InverterPlant.__init__ folds into the circuit, the controller's gains or the delay's state space
+_NOT_IN_EVALUATE = ("param_drift", "gain_mismatch", "delay")
+
+
 def _per_row(values: list, rows: np.ndarray):
     """One value per row, or the plain value where every plant has the same one (no array: same speed)."""
     if all(v == values[0] for v in values[1:]):
@@ -55,7 +59,12 @@ class PlantStack(InverterPlant):
                    for key in plants[0].control.to_dict()}
         self.control = types.SimpleNamespace(**control)
         self.circuit = {key: _per_row([p.circuit[key] for p in plants], self.rows) for key in plants[0].circuit}
-        names = [name for name in EFFECTS if any(name in p.effects for p in plants) and EFFECTS[name].neutral]
+        for plant in plants:
+            for name in plant.effects:
+                if EFFECTS[name].neutral is None and name not in _NOT_IN_EVALUATE:
+                    raise ValueError(f"effect {name} has no neutral values: plants with it cannot be stacked")
+        names = [name for name in EFFECTS
+                 if any(name in p.effects for p in plants) and EFFECTS[name].neutral is not None]
         self.effects = {name: {key: _per_row([p.effects.get(name, EFFECTS[name].neutral)[key] for p in plants],
                                              self.rows)
                                for key in EFFECTS[name].neutral}
