@@ -192,15 +192,16 @@ class GapWorkflow:
         r = np.concatenate(res)
         return np.where(np.isfinite(r), r, 1e3)
 
-    def _simulate(self, ref, traj_index=None, coarse: bool = False):
+    def _substeps(self, coarse: bool) -> int:
         # screening only ranks candidates: one RK4 step per sample is accurate enough there
-        substeps = max(1, self.settings.substeps // 2) if coarse else self.settings.substeps
-        return ref.simulate(self.sim_data, substeps=substeps, traj_index=traj_index)
+        return max(1, self.settings.substeps // 2) if coarse else self.settings.substeps
+
+    def _simulate(self, ref, traj_index=None, coarse: bool = False):
+        return ref.simulate(self.sim_data, substeps=self._substeps(coarse), traj_index=traj_index)
 
     def _simulate_all(self, refs, traj_index=None, coarse: bool = False):
         """:meth:`_simulate` of several references in one vectorised pass (the same numbers)."""
-        substeps = max(1, self.settings.substeps // 2) if coarse else self.settings.substeps
-        return simulate_references(refs, self.sim_data, substeps=substeps, traj_index=traj_index)
+        return simulate_references(refs, self.sim_data, substeps=self._substeps(coarse), traj_index=traj_index)
 
     def detect(self, preds) -> list[dict]:
         """Windows where the smoothed normalised residual leaves the noise band."""

@@ -16,6 +16,7 @@ from .. import __version__
 from ..data import Dataset, Trajectory
 from ..signals import SAMPLE_RATE_HZ
 from ..integrate import simulate
+from .parameters import ParameterError
 
 SCENARIOS = ("train", "test", "smallsignal")
 
@@ -106,17 +107,21 @@ def schedules_for(scenario: str, seed: int = 0, n_traj: int | None = None, durat
     raise ValueError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
 
 
+def _with_effects(plant) -> str:
+    effects = ", ".join(f"{name} {values}" for name, values in getattr(plant, "effects", {}).items())
+    return f" with {effects}" if effects else ""
+
+
 def _start(plant, index: int, schedule: Schedule) -> np.ndarray:
-    """The rest state a record starts from; an error that names the record where there is none."""
+    """The rest state a record starts from; a settings error that names the record where there is none."""
     from .model import EquilibriumError
 
     try:
         return plant.equilibrium(schedule.ug0, schedule.theta0)
     except EquilibriumError as err:
-        effects = ", ".join(f"{name} {values}" for name, values in getattr(plant, "effects", {}).items())
-        raise EquilibriumError(
+        raise ParameterError(
             f"trajectory {index} starts at rest at ug0 = {schedule.ug0:.4g} p.u., theta0 = {schedule.theta0:.4g} "
-            f"rad, and the plant{' with ' + effects if effects else ''} has no equilibrium there "
+            f"rad, and the plant{_with_effects(plant)} has no equilibrium there "
             f"(a limit too tight for that operating point?)") from err
 
 
@@ -128,11 +133,20 @@ def generate(plant, schedules: list[Schedule], duration: float, dt: float = 1.0 
     -------
     Dataset
         Clean (noise-free) measurements with provenance metadata.
+
+    Raises
+    ------
+    ParameterError
+        A record that cannot start at rest, or a simulation that diverges: the plant's settings
+        (its effects, most likely) do not fit the schedules.
     """
     n = int(round(duration / dt)) + 1
     x0 = np.stack([_start(plant, k, s) for k, s in enumerate(schedules)])
     inputs = np.stack([s.sample(n, dt) for s in schedules])
-    states = simulate(plant, x0, inputs, dt, method=method)
+    try:
+        states = simulate(plant, x0, inputs, dt, method=method)
+    except FloatingPointError as err:
+        raise ParameterError(f"the records of the plant{_with_effects(plant)} cannot be simulated: {err}") from err
     n_meas = len(plant.state_names)
     t = np.arange(n) * dt
     trajectories = [Trajectory(k, t.copy(), states[k, :, :n_meas], inputs[k]) for k in range(len(schedules))]

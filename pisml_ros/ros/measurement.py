@@ -31,7 +31,7 @@ def load_source(source: str, path: str, scenario: str, seed: int, snr_db: float,
             raise ValueError(f"parameter path: required for source={source}")
         return read_dataset(path)
     if source == "sim":
-        from ..plant import EquilibriumError, InverterPlant, PlantParameters, load_parameters
+        from ..plant import InverterPlant, PlantParameters, load_parameters
         from ..plant.effects import parse_effect_assignments
         from ..plant.noise import add_measurement_noise
         from ..plant.scenarios import generate, schedules_for
@@ -39,11 +39,8 @@ def load_source(source: str, path: str, scenario: str, seed: int, snr_db: float,
         params = load_parameters(params_file) if params_file else PlantParameters()
         plant = InverterPlant(params, parse_effect_assignments([e for e in effects if e], [a for a in effect_params if a]))
         schedules, duration = schedules_for(scenario, seed=seed)
-        try:
-            dataset = generate(plant, schedules, duration, metadata={"scenario": scenario, "seed": seed})
-        except (EquilibriumError, FloatingPointError) as err:  # a configuration error: one line, exit status 2
-            raise ValueError(f"parameters scenario / effects: cannot simulate scenario {scenario!r} "
-                             f"(seed {seed}): {err}") from None
+        # (settings the plant cannot simulate raise ParameterError, a ValueError: a configuration error)
+        dataset = generate(plant, schedules, duration, metadata={"scenario": scenario, "seed": seed})
         if snr_db > 0:
             return add_measurement_noise(dataset, snr_db, seed=seed + 1_000_003, include_inputs=noisy_inputs)
         if noisy_inputs:
