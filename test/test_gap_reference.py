@@ -28,6 +28,22 @@ def test_references_together_give_what_each_gives_alone_on_any_trajectories():
     assert not np.array_equal(together[0][0], together[3][0])  # the plants do differ
 
 
+def test_references_with_the_same_unnamed_terms_are_stacked_with_them():
+    schedules, _ = schedules_for("test", seed=1)
+    data = generate(InverterPlant(), schedules, 0.01)
+    coefficients = np.zeros((2, 13))
+    coefficients[0, 1], coefficients[1, 11] = 0.3, -5.0  # d(Pf)/dt += 0.3, d(ig_d)/dt += -5·vc_d
+    residual = ExplicitModel(STATE_NAMES, INPUT_NAMES, ["1", "vc_d"], coefficients)
+    base = PlantReference().with_residual(residual)
+    references = [base, base.with_effects({"param_drift": {"Lg": 0.06}})]
+    together = simulate_references(references, data, substeps=1)
+    for reference, preds in zip(references, together):
+        for p, q in zip(preds, reference.simulate(data, substeps=1)):
+            assert np.array_equal(p, q)
+    without = PlantReference().simulate(data, substeps=1)
+    assert not np.array_equal(together[0][0], without[0])  # the terms act
+
+
 def test_a_long_record_is_simulated_a_few_plants_a_pass(monkeypatch):
     import pisml_ros.gap.reference as reference_module
 

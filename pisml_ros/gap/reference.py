@@ -11,7 +11,17 @@ from ..data import Dataset
 from ..integrate import simulate_many
 from ..model import ExplicitModel
 from ..plant import InverterPlant, PlantParameters
+from ..plant.model import N_MEASURED
 from ..plant.stack import PlantStack
+
+def _with_residual(rates, residual: ExplicitModel | None, x, u):
+    """A plant's rates plus an `unnamed` effect's explicit terms on its measured states."""
+    if residual is None:
+        return rates
+    rates = rates.copy()
+    rates[..., :N_MEASURED] += residual.vector_field(x[..., :N_MEASURED], u)
+    return rates
+
 
 # effects whose parameters are merged key by key when several are added (their keys name parameters)
 _MERGED_EFFECTS = ("param_drift", "gain_mismatch")
@@ -45,11 +55,7 @@ class PlantReference:
         return PlantReference(self.params, self.effects, residual)
 
     def vector_field(self, x, u):
-        out = self.plant.vector_field(x, u)
-        if self.residual is not None:
-            out = out.copy()
-            out[..., :13] += self.residual.vector_field(x[..., :13], u)
-        return out
+        return _with_residual(self.plant.vector_field(x, u), self.residual, x, u)
 
     def internal_signals(self, x, u) -> dict:
         return self.plant.internal_signals(self.plant.full_state(x, u), u)
@@ -104,10 +110,7 @@ class _StackWithResidual:
         self.stack, self.residual = stack, residual
 
     def vector_field(self, x, u):
-        out = self.stack.vector_field(x, u)
-        if self.residual is not None:
-            out[..., :13] += self.residual.vector_field(x[..., :13], u)
-        return out
+        return _with_residual(self.stack.vector_field(x, u), self.residual, x, u)
 
 
 def simulate_references(references, dataset: Dataset, substeps: int = 2, traj_index=None) -> list[list[np.ndarray]]:
