@@ -36,6 +36,9 @@ IOD_TARGET, OOD_TARGET, COMPRESSION_TARGET = 0.5, 1.0, 250.0
 # the default hybrid (the paper's MLP, 20 749 parameters, plus a backbone of ~300) over 250: what
 # a row without the hybrid's count (an imported one) is held to
 COEFFICIENTS_FOR_TARGET = 84
+# the selection's record kept in each row (every candidate's training error, its inconsistent rest
+# points, the hold's error and the noise floor)
+SELECTION_KEYS = ("chosen", "training_error_pct", "inconsistent_rest_points", "hold_error_pct", "noise_floor_pct")
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -145,8 +148,12 @@ def run(args) -> int:
         est = make_estimator("pisml", config).fit(train, small)
         seconds = time.monotonic() - started
         row = scored_row(est.model_, plant, test, grid, truth)
-        row.update(chosen=est.model_.metadata.get("selection", {}).get("chosen"), seconds=round(seconds, 1),
-                   hybrid_parameters=int(est.metrics_.get("hybrid_parameters") or 0) or None)
+        selection = est.model_.metadata.get("selection", {})
+        row.update(chosen=selection.get("chosen"), seconds=round(seconds, 1),
+                   hybrid_parameters=int(est.metrics_.get("hybrid_parameters") or 0) or None,
+                   # what the selection saw, so that a change of the rule (or a choice between two
+                   # settings' candidates) can be replayed on the rows without fitting again
+                   selection={key: selection.get(key) for key in SELECTION_KEYS})
         data["rows"][str(seed)] = row
         save(path, data)
         print(f"seed {seed}: {format_row(row)}", flush=True)
