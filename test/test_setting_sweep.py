@@ -89,3 +89,34 @@ def test_the_input_noise_scenarios_put_noise_on_the_inputs_at_their_level():
     # the states' noise is the protocol's draw in all three
     for other in (noisy, quieter):
         assert all((a.x == b.x).all() for a, b in zip(protocol, other))
+
+
+def test_a_family_choice_replay_takes_the_second_setting_only_above_the_ratio_and_where_it_scores_better(
+        tmp_path, capsys):
+    import family_choice
+
+    def sweep(name, rows):
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps({"name": name, "rows": rows}))
+        return str(path)
+
+    def row(iod, coefficients, scores, inconsistent, chosen):
+        return _row(iod, 0.5, coefficients) | {"selection": {
+            "chosen": chosen, "training_error_pct": scores, "inconsistent_rest_points": inconsistent,
+            "hold_error_pct": 40.0, "noise_floor_pct": 1.0}}
+
+    # recording 0: the first setting's choice at 3x its floor, the second family's best eligible
+    # model better (its lower score belongs to a model inconsistent with a rest point, which does
+    # not count); recording 1: at 1.5x, the second family's best worse
+    first = sweep("first", {"0": row(0.9, 60, {"a": 3.0}, {"a": 0}, "a"),
+                            "1": row(0.2, 70, {"a": 1.5}, {"a": 0}, "a")})
+    second = sweep("second", {"0": row(0.3, 90, {"b": 2.0, "c": 1.0}, {"b": 0, "c": 1}, "b"),
+                              "1": row(0.4, 95, {"b": 1.6}, {"b": 0}, "b")})
+    assert family_choice.main([first, second, "--ratios", "0,2,5"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    # τ 0: recording 0 takes the second's row (0.3 %), recording 1 keeps the first's: both within
+    assert lines[3].startswith("τ 0 (the second setting run on 2)") and "no spurious mode 2" in lines[3]
+    assert lines[4].startswith("τ 2 (the second setting run on 1)") and "no spurious mode 2" in lines[4]
+    assert lines[5].startswith("τ 5 (the second setting run on 0)") and "no spurious mode 1" in lines[5]
+    with pytest.raises(SystemExit, match="without 'selection'"):
+        family_choice.main([sweep("old", {"0": _row(0.2, 0.5, 70)}), second])
