@@ -22,26 +22,27 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]
 
 from setting_sweep import format_summary, load  # noqa: E402
 
 
 def best_eligible(row: dict) -> tuple:
-    """(fewest inconsistent rest points, best score among the candidates with that many) of one
-    row's selection record, and the chosen model's score over the noise floor."""
+    """(fewest inconsistent rest points among the eligible candidates, their best score) of one row's
+    selection record, by the engine's own rule (:func:`pisml_ros.ident.estimators.eligible_candidates`),
+    and the chosen model's score over the noise floor."""
+    from pisml_ros.ident.estimators import eligible_candidates
+
     selection = row.get("selection")
     if not selection:
         raise SystemExit("family_choice: a row without 'selection' (swept before stop 59): run the sweep again")
     scores = {name: np.inf if value is None else value for name, value in selection["training_error_pct"].items()}
-    models = [name for name in scores if scores[name] < selection["hold_error_pct"]]
-    pool = models or [name for name in scores if np.isfinite(scores[name])] or list(scores)
-    misfits = {name: selection["inconsistent_rest_points"].get(name) for name in pool}
-    misfits = {name: np.inf if value is None else value for name, value in misfits.items()}
-    fewest = min(misfits.values())
-    best = min(scores[name] for name in pool if misfits[name] == fewest)
+    recorded = selection["inconsistent_rest_points"]
+    _, misfits, eligible = eligible_candidates(
+        scores, selection["hold_error_pct"], lambda name: np.inf if recorded.get(name) is None else recorded[name])
+    best = min(eligible, key=lambda name: scores[name])
     floor = selection.get("noise_floor_pct") or np.nan
-    return (fewest, best), scores[selection["chosen"]] / floor
+    return (misfits[best], scores[best]), scores[row["chosen"]] / floor
 
 
 def main(argv=None) -> int:

@@ -36,9 +36,9 @@ IOD_TARGET, OOD_TARGET, COMPRESSION_TARGET = 0.5, 1.0, 250.0
 # the default hybrid (the paper's MLP, 20 749 parameters, plus a backbone of ~300) over 250: what
 # a row without the hybrid's count (an imported one) is held to
 COEFFICIENTS_FOR_TARGET = 84
-# the selection's record kept in each row (every candidate's training error, its inconsistent rest
-# points, the hold's error and the noise floor)
-SELECTION_KEYS = ("chosen", "training_error_pct", "inconsistent_rest_points", "hold_error_pct", "noise_floor_pct")
+# the selection's record kept in each row beside the chosen name (every candidate's training error,
+# its inconsistent rest points, the hold's error and the noise floor)
+SELECTION_KEYS = ("training_error_pct", "inconsistent_rest_points", "hold_error_pct", "noise_floor_pct")
 
 
 def parse_seeds(text: str) -> list[int]:

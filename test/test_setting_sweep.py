@@ -101,8 +101,8 @@ def test_a_family_choice_replay_takes_the_second_setting_only_above_the_ratio_an
         return str(path)
 
     def row(iod, coefficients, scores, inconsistent, chosen):
-        return _row(iod, 0.5, coefficients) | {"selection": {
-            "chosen": chosen, "training_error_pct": scores, "inconsistent_rest_points": inconsistent,
+        return _row(iod, 0.5, coefficients) | {"chosen": chosen, "selection": {
+            "training_error_pct": scores, "inconsistent_rest_points": inconsistent,
             "hold_error_pct": 40.0, "noise_floor_pct": 1.0}}
 
     # recording 0: the first setting's choice at 3x its floor, the second family's best eligible

@@ -372,6 +372,30 @@ def _selection_warnings(chosen: str, scores: dict, hold: float, misfits: dict, p
     return warnings
 
 
+def eligible_candidates(scores: dict, hold: float, inconsistency: Callable[[str], int]) -> tuple:
+    """Which candidates compete in :func:`_selected`: (those that reproduce the records better than
+    holding their first states, each scored one's count of inconsistent rest points, the eligible).
+
+    ``scores``: name -> free-run training error (%); ``hold``: :func:`hold_error`;
+    ``inconsistency(name)``: at how many rest points the candidate is inconsistent with the records
+    (:func:`_inconsistent_points`; asked only of the candidates that can compete). Also used by
+    ``bench/family_choice.py`` to replay the rule on the counts a fit recorded.
+    """
+    # a model with no equilibrium near a point where the records sat at rest cannot be analysed
+    # there (nor be right there), and one whose equilibrium there has a fast-growing mode (at the
+    # small-signal point: one that does not decay) contradicts the record that sat still: the
+    # candidates with the fewest such points compete
+    models = [name for name in scores if scores[name] < hold]
+    finite = models or [name for name in scores if np.isfinite(scores[name])] or list(scores)
+    misfits = {name: inconsistency(name) for name in finite}
+    # where none reproduces the records better than the hold, consistency at the rest points says
+    # little (20 dB, benchmark recording: every sound candidate was inconsistent at all 9 points,
+    # and a pruning collapsed to one term per equation, 289 % against 53 %, consistent at all of
+    # them, took 70 / 87 % IOD / OOD against the best score's 9.1 / 11.8 %): the best score wins
+    eligible = [name for name in finite if misfits[name] == min(misfits.values())] if models else finite
+    return models, misfits, eligible
+
+
 def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance: float = 0.0,
               verdicts: dict | None = None, unstable_rate: float = np.inf, hold: float = np.inf,
               equilibrium_grid=(), round_rise: float = np.inf, grid_stability: bool = False,
@@ -426,18 +450,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     """
     points = template.metadata.get("reference_points") or []
     verdicts = {} if verdicts is None else verdicts
-    # a model with no equilibrium near a point where the records sat at rest cannot be analysed
-    # there (nor be right there), and one whose equilibrium there has a fast-growing mode (at the
-    # small-signal point: one that does not decay) contradicts the record that sat still: the
-    # candidates with the fewest such points compete
-    models = [name for name in scores if scores[name] < hold]
-    finite = models or [name for name in scores if np.isfinite(scores[name])] or list(scores)
-    misfits = {name: _inconsistent_points(name, candidates, points, verdicts, unstable_rate) for name in finite}
-    # where none reproduces the records better than the hold, consistency at the rest points says
-    # little (20 dB, benchmark recording: every sound candidate was inconsistent at all 9 points,
-    # and a pruning collapsed to one term per equation, 289 % against 53 %, consistent at all of
-    # them, took 70 / 87 % IOD / OOD against the best score's 9.1 / 11.8 %): the best score wins
-    eligible = [name for name in finite if misfits[name] == min(misfits.values())] if models else finite
+    models, misfits, eligible = eligible_candidates(
+        scores, hold, lambda name: _inconsistent_points(name, candidates, points, verdicts, unstable_rate))
     lost = _lost_rounds(scores, round_rise)
     grid_inputs = _grid_inputs(template, equilibrium_grid)
     # the grid stability check (grid_stability) only where some candidate beats the hold, as the grid rule below
