@@ -22,7 +22,7 @@ def test_seeds_parse_ranges_and_reject_words():
 
 def test_a_recording_meets_each_target_on_its_own_figures():
     good = setting_sweep.meets(_row(0.3, 0.6, 80))
-    assert good == {"accuracy": True, "no_spurious": True, "compression": True, "all": True}
+    assert good == {"accuracy": True, "no_spurious": True, "compression": True, "all": True, "operating_point": None}
     # compression from the hybrid's own count where the row has it, else the default hybrid's 84
     assert setting_sweep.meets(_row(0.3, 0.6, 90, hybrid=21000))["compression"] is False
     assert setting_sweep.meets(_row(0.3, 0.6, 90, hybrid=30000))["compression"] is True
@@ -120,3 +120,35 @@ def test_a_family_choice_replay_takes_the_second_setting_only_above_the_ratio_an
     assert lines[5].startswith("τ 5 (the second setting run on 0)") and "no spurious mode 1" in lines[5]
     with pytest.raises(SystemExit, match="without 'selection'"):
         family_choice.main([sweep("old", {"0": _row(0.2, 0.5, 70)}), second])
+
+
+def test_a_row_says_where_the_operating_point_went_wrong(capsys):
+    off = _row(0.3, 0.6, 80) | {"op_dp": 0.001, "op_dq": 1.5}
+    none = _row(0.3, 0.6, 80) | {"op_dp": None, "op_dq": None}  # no equilibrium at a grid point
+    right = _row(0.3, 0.6, 80) | {"op_dp": 0.001, "op_dq": 0.05}
+    assert [setting_sweep.meets(r)["operating_point"] for r in (off, none, right, _row(0.3, 0.6, 80))] \
+        == [False, False, True, None]  # the last: a row from before stop 60, not measured
+    # the targets stay what they were; the operating point is counted beside them
+    assert setting_sweep.meets(off)["all"]
+    counts = setting_sweep.summary([off, none, right, _row(0.3, 0.6, 80)])
+    assert (counts["operating_point_wrong"], counts["operating_point_measured"]) == (2, 3)
+    assert "[operating point wrong]" in setting_sweep.format_row(off) and "ΔQ op. 1.5" in setting_sweep.format_row(off)
+    assert "ΔQ op. no equilibrium" in setting_sweep.format_row(none)
+    assert "operating point wrong (ΔQ above 0.3 p.u. or no equilibrium) 2 of 3 measured" in \
+        setting_sweep.format_summary({"name": "x", "rows": {"0": off, "1": none, "2": right, "3": _row(0.3, 0.6, 80)}})
+
+
+def test_a_scored_row_measures_the_models_operating_point_against_the_plant():
+    import bench
+
+    from pisml_ros.model.explicit import ExplicitModel
+
+    plant, _, _, test = bench.datasets({}, 40.0, seed=0)
+    grid = bench.plant_grid(plant)
+    truth = {g: plant.eigenvalues(g, 0.0) for g in grid}
+    model = ExplicitModel.load(Path(__file__).resolve().parents[1] / "bench" / "models" / "standard_40dB_pisml.json")
+    row = setting_sweep.scored_row(model, plant, test, grid, truth)
+    # the benchmark's recording 0 (bench/RESULTS.md: 0.158 / 0.438 %, ΔQ / ΔP op. 0.08 / 0.00036)
+    assert abs(row["iod"] - 0.158) < 5e-4 and abs(row["ood"] - 0.438) < 5e-4
+    assert 0.07 < row["op_dq"] < 0.09 and row["op_dp"] < 1e-3
+    assert setting_sweep.meets(row)["operating_point"] is True
