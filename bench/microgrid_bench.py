@@ -305,7 +305,7 @@ def figure(truth: dict, rows: list, path: Path) -> None:
 
 
 def main(argv=None) -> int:
-    from bench import datasets, machine
+    from bench import add_settings_option, datasets, machine, settings_or_exit
 
     from pisml_ros.analysis.microgrid import read_microgrid_config
 
@@ -320,7 +320,9 @@ def main(argv=None) -> int:
     parser.add_argument("--markdown", default=str(BENCH / "MICROGRID_RESULTS.md"))
     parser.add_argument("--figure", default=str(BENCH / "figures" / "microgrid_load_step.png"))
     parser.add_argument("--strength-figure", default=str(BENCH / "figures" / "microgrid_grid_strength.png"))
+    add_settings_option(parser)
     args = parser.parse_args(argv)
+    settings = settings_or_exit(args.set, parser)
     seeds = []
     for part in (p.strip() for p in args.seeds.split(",") if p.strip()):
         low, _, high = part.partition("-")
@@ -339,7 +341,7 @@ def main(argv=None) -> int:
         _, train, small, _ = datasets(None, snr, seed=seed)
         for method in methods:
             fit_started = time.monotonic()
-            est = make_estimator(method, IdentConfig.load(None, {})).fit(train, small)
+            est = make_estimator(method, IdentConfig.load(None, settings)).fit(train, small)
             model = est.explicit_model_
             row = {"seed": seed, "data": "clean" if snr is None else f"{snr:g} dB", "method": method,
                    "coefficients": int(model.n_parameters), "fit_s": round(time.monotonic() - fit_started, 1)}

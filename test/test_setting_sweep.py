@@ -60,6 +60,7 @@ def test_candidate_tables_import_into_a_sweep_that_compare_reads(tmp_path, capsy
 def test_benchmark_scripts_take_settings_and_stop_on_a_bad_one_before_any_fit(capsys):
     import bench
     import candidates
+    import microgrid_bench
     import plants_bench
     import scenarios_bench
 
@@ -71,6 +72,8 @@ def test_benchmark_scripts_take_settings_and_stop_on_a_bad_one_before_any_fit(ca
                               (bench.main, ["--quick", "--set", "filter_terms=linear"],
                                "filter_terms must be physics or any, got 'linear'"),
                               (candidates.main, ["--set", "epochs=0"], "epochs must be > 0"),
+                              (microgrid_bench.main, ["--set", "filter_terms=linear"],
+                               "filter_terms must be physics or any, got 'linear'"),
                               (setting_sweep.main, ["run", "--name", "x", "--set", "selection_tolerance=-1"],
                                "selection_tolerance")]:
         with pytest.raises(SystemExit) as stop:
