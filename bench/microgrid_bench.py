@@ -21,7 +21,8 @@ and method (PISML and the Mod-SINDy baseline) it prints and writes:
 
     .venv/bin/python bench/microgrid_bench.py [--seeds 0-9] [--noise 40] [--clean] \
         [--methods pisml,mod-sindy] [--out bench/microgrid_results.json] [--markdown bench/MICROGRID_RESULTS.md] \
-        [--figure bench/figures/microgrid_load_step.png] [--strength-figure bench/figures/microgrid_grid_strength.png]
+        [--figure bench/figures/microgrid_load_step.png] [--strength-figure bench/figures/microgrid_grid_strength.png] \
+        [--set KEY=VALUE ...]
 """
 from __future__ import annotations
 
