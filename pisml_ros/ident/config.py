@@ -333,7 +333,11 @@ class IdentConfig:
     # errors 72 / 82 %) against none; the demo's model (119 coefficients, 0.70 / 1.53 %) turned the
     # demo's microgrid unstable (+0.033 1/s; the plant -1.53). Back to "any". But on the unseen
     # recordings 10-23 (bench/sweeps/*-stop60-op.json) Q's equilibrium is > 0.3 p.u. off on 1 of 14
-    # with "physics" and 3 of 14 with "any": the microgrid verdicts on unseen recordings decide
+    # with "physics" and 3 of 14 with "any"; in the microgrid (recordings 10-15,
+    # bench/MICROGRID_RESULTS_10-15_filter_physics.md against MICROGRID_RESULTS_10-15.md) "physics"
+    # gives every verdict and boundary right, load-step errors 0.19-4.7 % against 0.37-12.2 %, and no
+    # wrong grid-strength verdict against 2. Unseen, "physics" is ahead on everything measured; the
+    # switch (with make bench and make demo re-run) is left to stop 61
     filter_terms: str = "any"
     # stability prior of the refinement (the one-stage refinement, and the polish of the pruned model
     # on noisy data): at operating points where the plant sat at rest (refine_stability_points)
