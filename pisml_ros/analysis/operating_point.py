@@ -265,10 +265,13 @@ def stability_at_points(model, points) -> list:
     return [None if growth is None else bool(growth < 0) for growth in growth_rates_at_points(model, points)]
 
 
-def growth_rates_at_points(model, points, at=None) -> list:
+def growth_rates_at_points(model, points, at=None, zero_mode_below: float = 0.0) -> list:
     """The largest real part of the eigenvalues (1/s) of an explicit ``model``'s equilibrium at each
     operating point of ``points`` (as :func:`stability_at_points`), None where no equilibrium was found.
-    ``at``: input vectors to evaluate at instead, the equilibrium search still seeded by ``points``."""
+    ``at``: input vectors to evaluate at instead, the equilibrium search still seeded by ``points``.
+    ``zero_mode_below``: an equilibrium with a mode of modulus below this (1/s) counts as none
+    (None): with a Jacobian all but singular, the smallest offset in f moves it far (Δx ≈ J⁻¹ Δf)
+    and its linear analysis cannot tell growth from decay."""
     from ..model import ExplicitModel
 
     probe = ExplicitModel(model.state_names, model.input_names, model.terms, model.coefficients,
@@ -277,9 +280,12 @@ def growth_rates_at_points(model, points, at=None) -> list:
     for point in (points if at is None else [{"inputs": inputs} for inputs in at]):
         inputs = [float(v) for v in point["inputs"]]
         try:
-            rates.append(float(np.max(probe.eigenvalues(*inputs).real)))
+            eigenvalues = probe.eigenvalues(*inputs)
         except (RuntimeError, ValueError, np.linalg.LinAlgError, FloatingPointError):  # no equilibrium
             rates.append(None)
+            continue
+        zero_mode = np.min(np.abs(eigenvalues), initial=np.inf) < zero_mode_below
+        rates.append(None if zero_mode else float(np.max(eigenvalues.real)))
     return rates
 
 
