@@ -127,8 +127,9 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
 # cannot resolve a time constant of 100 s). Stop 61, filter_terms "physics" on 40 dB benchmark
 # recordings 3 and 4: the chosen models had a mode at 6e-4 and 1e-5 1/s at every rest point and
 # equilibria 0.3-1.1 and 90-2200 times the rest state's size away from it (Q 1.5 and 2.6e3 p.u.
-# off the plant's); the plant's smallest mode over ug 0.2-1.2 is 0.94 1/s, the default's ten
-# chosen models' 0.076
+# off the plant's); the plant's smallest mode over ug 0.2-1.2 is 0.94 1/s, the smallest of the ten
+# models chosen with "any" (stop 57) 0.076, of the ten chosen with the rule (stop 61) 0.028
+# (recording 1; the others 0.12-3.6)
 ZERO_MODE_MODULUS = 0.01
 
 
