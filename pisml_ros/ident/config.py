@@ -305,7 +305,7 @@ class IdentConfig:
     # against 5: standard 0.615 / 0.166, 0.278 / 1.22, 1.67 / 2.06 %; vendor-b 0.506 / 0.587,
     # 0.284 / 0.382 ok, 0.581 / 1.01; vendor-c 2.77 / 3.29 % (both refinement starts lost: the
     # backbone chosen, 303 coefficients, spurious at every ug; "any" 0.356 / 0.272 %), 0.732 / 3.43,
-    # 2.8 / 2.91 (as with "any"); an equilibrium at every grid point on 9 of 9 against 7. Not the
+    # 2.8 / 2.91 (as with "any"); an equilibrium at every grid point on 9 of 9 against 7. Then not the
     # default: sparser and better on the unseen protocol recordings, less robust off the protocol.
     # The re-fit of stops 21-46 (equation error on the records' derivatives, noise-compensated)
     # started recordings 6 and 7 at an unstable LCL mode (+2000 1/s; 5 of 11 within both targets
