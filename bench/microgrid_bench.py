@@ -124,6 +124,34 @@ def grid_strength(target) -> dict:
     return out
 
 
+def quick_verdicts(target) -> dict:
+    """The two stability verdicts of ``target`` (a system, or None for the plant) that
+    ``bench/setting_sweep.py run --microgrid`` keeps per recording, without the boundary sweeps and the
+    load step of :func:`assess`: the 3-bus microgrid's largest real part with the grid source at
+    1.0 p.u. (None: no operating point), and the weak-grid sweep's largest real parts at 1.0 p.u. (at
+    each x of WEAK_X)."""
+    from pisml_ros.analysis.microgrid import (microgrid_from_config, parameter_sweep, read_microgrid_config,
+                                              with_setting, with_unit_model)
+    config, loaded = read_microgrid_config(CONFIG), {}
+    if target is not None:
+        config, loaded = with_unit_model(config, "target", target, CONFIG.parent)
+    try:
+        grid = microgrid_from_config(config, CONFIG.parent, loaded=loaded)[0]
+        grid_tied = float(np.max(grid.eigenvalues(1.0, 0.0).real))
+    except Exception:  # no operating point of this microgrid: a verdict of its own
+        grid_tied = None
+    weak, weak_loaded = read_microgrid_config(WEAK_GRID), {}
+    if target is not None:
+        weak, weak_loaded = with_unit_model(weak, "target", target, WEAK_GRID.parent)
+    try:
+        sweep = parameter_sweep(with_setting(weak, "grid.ug", 1.0), "lines.0.x", WEAK_X, WEAK_GRID.parent,
+                                loaded=weak_loaded)
+        weak_max_real = [p["max_real"] for p in sweep["points"]]
+    except Exception:  # a sweep that cannot start (no operating point at all)
+        weak_max_real = [None] * len(WEAK_X)
+    return {"grid_tied_max_real": grid_tied, "weak_max_real": weak_max_real}
+
+
 def wrong_verdicts(row: dict, truth: dict, ug: float) -> list:
     """The (x, what the model says) at the x of WEAK_X where the model's stability verdict differs
     from the plant's ("stable", "unstable", or "no eq.": no operating point)."""

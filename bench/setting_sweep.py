@@ -6,7 +6,10 @@ This keeps the per-recording rows in the repository (``bench/sweeps/*.json``): t
 IOD / OOD error on the protocol's test records, its spectrum at ug 0.8 against the plant's, spurious
 unstable modes over ug 0.2-1.1, its size, and the fit's time. A change is then compared with the
 same recordings' rows, and the summary counts what the issue's 40 dB targets ask of each
-recording (IOD <= 0.5 %, OOD <= 1.0 %, no spurious unstable mode, compression >= 250x).
+recording (IOD <= 0.5 %, OOD <= 1.0 %, no spurious unstable mode, compression >= 250x). Where the
+recordings come from the default plant, each row also keeps the chosen model's stability verdicts
+in the 3-bus microgrid and behind a weak line (``bench/microgrid_bench.py``'s, at 1.0 p.u.; ~1 s),
+which the records alone do not pin.
 
     .venv/bin/python bench/setting_sweep.py run --name ridge-1e-4 --set refine_ridge_weight=0.0001 \\
         [--seeds 0-15] [--scenario protocol] [--noise 40]      # ~1-1.5 min a recording on 2 cores
@@ -59,6 +62,16 @@ def parse_seeds(text: str) -> list[int]:
     return sorted(set(seeds))
 
 
+def microgrid_right(row: dict) -> bool | None:
+    """Whether the row's model gets the default plant's stability verdicts right (stable in the 3-bus
+    microgrid with the grid at 1.0 p.u., and behind every weak line of the sweep at 1.0 p.u., as the
+    plant is); None where not measured (rows from before stop 62, or another plant's recordings)."""
+    if "mg_max_real" not in row:
+        return None
+    weak = row.get("weak_max_real") or [None]
+    return row["mg_max_real"] is not None and row["mg_max_real"] < 0 and all(w is not None and w < 0 for w in weak)
+
+
 def meets(row: dict) -> dict:
     """Which of the issue's 40 dB targets one recording's row meets (``None``: not measured)."""
     finite = row.get("iod") is not None and row.get("ood") is not None
@@ -72,6 +85,7 @@ def meets(row: dict) -> dict:
     # rows from before stop 60 did not measure the operating point: None (not measured) there
     out["operating_point"] = None if "op_dq" not in row else (
         row["op_dq"] is not None and row["op_dq"] <= OPERATING_POINT_DQ_LIMIT)
+    out["microgrid"] = microgrid_right(row)
     return out
 
 
@@ -86,7 +100,9 @@ def summary(rows: list[dict]) -> dict:
            "compression": sum(v["compression"] for v in verdicts),
            "all_targets": sum(v["all"] for v in verdicts),
            "operating_point_wrong": sum(v["operating_point"] is False for v in verdicts),
-           "operating_point_measured": sum(v["operating_point"] is not None for v in verdicts)}
+           "operating_point_measured": sum(v["operating_point"] is not None for v in verdicts),
+           "microgrid_wrong": sum(v["microgrid"] is False for v in verdicts),
+           "microgrid_measured": sum(v["microgrid"] is not None for v in verdicts)}
     if rows:
         out.update(iod_median=float(np.median(iod)), iod_worst=float(np.max(iod)),
                    ood_median=float(np.median(ood)), ood_worst=float(np.max(ood)),
@@ -140,7 +156,10 @@ def run(args) -> int:
     from bench import make_estimator, plant_grid, settings_or_exit
     from scenarios_bench import SCENARIOS, scenario_datasets
 
+    from microgrid_bench import quick_verdicts
+
     from pisml_ros.ident import IdentConfig
+    from pisml_ros.plant import PlantParameters
 
     if args.scenario not in SCENARIOS:
         raise SystemExit(f"setting_sweep: --scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
@@ -159,11 +178,19 @@ def run(args) -> int:
             continue
         plant, train, small, test = scenario_datasets(SCENARIOS[args.scenario], snr, seed)
         grid = plant_grid(plant)
+        # the microgrid and weak-grid configurations are built around the default plant
+        default_plant = plant.params == PlantParameters() and not plant.effects
         truth = {g: plant.eigenvalues(g, 0.0) for g in grid}
         started = time.monotonic()
         est = make_estimator("pisml", config).fit(train, small)
         seconds = time.monotonic() - started
         row = scored_row(est.model_, plant, test, grid, truth)
+        if default_plant:
+            verdicts = quick_verdicts(est.model_)
+            row.update(mg_max_real=verdicts["grid_tied_max_real"], weak_max_real=verdicts["weak_max_real"])
+        if args.models:
+            Path(args.models).mkdir(parents=True, exist_ok=True)
+            est.model_.save(Path(args.models) / f"{args.name}_{seed}.json")
         selection = est.model_.metadata.get("selection", {})
         row.update(chosen=selection.get("chosen"), seconds=round(seconds, 1),
                    hybrid_parameters=int(est.metrics_.get("hybrid_parameters") or 0) or None,
@@ -216,6 +243,13 @@ def format_row(row: dict) -> str:
         text += " [compression]"
     if verdict["operating_point"] is False:
         text += " [operating point wrong]"
+    if verdict["microgrid"] is not None:
+        from microgrid_bench import WEAK_X
+
+        text += f", microgrid {row['mg_max_real'] if row['mg_max_real'] is None else round(row['mg_max_real'], 3)}"
+        weak = [x for x, w in zip(WEAK_X, row.get("weak_max_real") or []) if w is None or w >= 0]
+        text += f", weak grid unstable at x {weak}" if weak else ""
+        text += " [microgrid wrong]" if verdict["microgrid"] is False else ""
     return text
 
 
@@ -230,6 +264,8 @@ def format_summary(data: dict) -> str:
     if s["operating_point_measured"]:
         text += (f"; operating point wrong (ΔQ above {OPERATING_POINT_DQ_LIMIT} p.u. or no equilibrium) "
                  f"{s['operating_point_wrong']} of {s['operating_point_measured']} measured")
+    if s["microgrid_measured"]:
+        text += f"; microgrid or weak-grid verdict wrong {s['microgrid_wrong']} of {s['microgrid_measured']} measured"
     if "seconds_median" in s:
         text += f", time median {s['seconds_median']:.1f} worst {s['seconds_worst']:.1f} s"
     return text
@@ -262,6 +298,7 @@ def main(argv=None) -> int:
     p_run.add_argument("--scenario", default="protocol", help="a scenario of bench/scenarios_bench.py")
     p_run.add_argument("--noise", default="40", help="'clean' or an SNR in dB (default 40)")
     p_run.add_argument("--out", help="the sweep file (default bench/sweeps/NAME.json)")
+    p_run.add_argument("--models", help="a folder to keep each chosen model in (NAME_SEED.json)")
     p_run.set_defaults(func=run)
     p_cmp = sub.add_parser("compare", help="the recordings' rows of sweep files side by side, and their counts")
     p_cmp.add_argument("files", nargs="+")

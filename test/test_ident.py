@@ -59,7 +59,7 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"device": "gpu"})
     with pytest.raises(ConfigError, match="refine_prune_budgets must be >= 0"):
         IdentConfig.from_mapping({"refine_prune_budgets": [0.01, -1]})
-    with pytest.raises(ConfigError, match="integrator_terms must be linear or any, got 'quadratic'"):
+    with pytest.raises(ConfigError, match="integrator_terms must be linear, error or any, got 'quadratic'"):
         IdentConfig.from_mapping({"integrator_terms": "quadratic"})
     with pytest.raises(ConfigError, match="refine_stability_points must be records or smallsignal"):
         IdentConfig.from_mapping({"refine_stability_points": "everywhere"})
@@ -1482,6 +1482,26 @@ def test_integrator_equations_keep_the_constant_and_plain_signals_only():
     assert mask[:3, integrators].all() and not mask[3:, integrators].any()
     none = integrator_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles(integrators=()))
     assert none.all()
+
+
+def test_integrator_equations_without_their_own_loop():
+    from pisml_ros.ident.library import integrator_row_mask
+
+    assert SignalRoles().integrator_loops() == [("phi_d", "phi_q"), ("gamma_d", "gamma_q")]
+    assert SignalRoles(integrators=("a", "b", "c")).integrator_loops() == [("a",), ("b",), ("c",)]
+    terms = ["1", "phi_d", "phi_q", "gamma_d", "gamma_q", "vc_d"]
+    index = {name: STATE_NAMES.index(name) for name in ("phi_d", "phi_q", "gamma_d", "gamma_q", "vc_d")}
+    kept = integrator_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles())
+    assert kept.all()
+    mask = integrator_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles(), own_loop=False)
+    # the voltage loop's rows lose phi_d, phi_q and keep gamma (none in the plant, but not ruled out)
+    for row in ("phi_d", "phi_q"):
+        assert list(mask[:, index[row]]) == [True, False, False, True, True, True]
+    # the current loop's rows keep the outer loop's integrators (KiV·phi inside the current reference)
+    for row in ("gamma_d", "gamma_q"):
+        assert list(mask[:, index[row]]) == [True, True, True, False, False, True]
+    # other rows keep every integrator
+    assert mask[:, index["vc_d"]].all()
 
 
 def test_filter_equations_keep_the_physics_of_a_rotating_frame_only():

@@ -22,7 +22,8 @@ def test_seeds_parse_ranges_and_reject_words():
 
 def test_a_recording_meets_each_target_on_its_own_figures():
     good = setting_sweep.meets(_row(0.3, 0.6, 80))
-    assert good == {"accuracy": True, "no_spurious": True, "compression": True, "all": True, "operating_point": None}
+    assert good == {"accuracy": True, "no_spurious": True, "compression": True, "all": True, "operating_point": None,
+                    "microgrid": None}
     # compression from the hybrid's own count where the row has it, else the default hybrid's 84
     assert setting_sweep.meets(_row(0.3, 0.6, 90, hybrid=21000))["compression"] is False
     assert setting_sweep.meets(_row(0.3, 0.6, 90, hybrid=30000))["compression"] is True
@@ -33,6 +34,29 @@ def test_a_recording_meets_each_target_on_its_own_figures():
     assert (counts["accuracy_and_no_spurious"], counts["spurious"], counts["compression"], counts["all_targets"]) \
         == (1, 1, 1, 1)
     assert counts["iod_worst"] == 0.6 and counts["coefficients_median"] == 90
+
+
+def test_microgrid_verdicts_count_against_the_plants():
+    stable = dict(_row(0.3, 0.6, 80), mg_max_real=-0.5, weak_max_real=[-0.4, -0.3])
+    assert setting_sweep.meets(stable)["microgrid"] is True
+    # unstable in the microgrid, behind one weak line, or without an operating point there: wrong
+    assert setting_sweep.meets(dict(stable, mg_max_real=0.1))["microgrid"] is False
+    assert setting_sweep.meets(dict(stable, mg_max_real=None))["microgrid"] is False
+    assert setting_sweep.meets(dict(stable, weak_max_real=[-0.4, 0.02]))["microgrid"] is False
+    assert setting_sweep.meets(dict(stable, weak_max_real=[-0.4, None]))["microgrid"] is False
+    counts = setting_sweep.summary([stable, dict(stable, mg_max_real=0.1), _row(0.3, 0.6, 80)])
+    assert (counts["microgrid_wrong"], counts["microgrid_measured"]) == (1, 2)
+    text = setting_sweep.format_row(dict(stable, weak_max_real=[-0.4] * 8 + [0.2]))
+    assert "weak grid unstable at x [1.5]" in text and "[microgrid wrong]" in text
+
+
+def test_quick_verdicts_of_the_plant_are_stable():
+    import microgrid_bench
+
+    verdicts = microgrid_bench.quick_verdicts(None)
+    assert verdicts["grid_tied_max_real"] == pytest.approx(-1.532, abs=0.01)
+    assert len(verdicts["weak_max_real"]) == len(microgrid_bench.WEAK_X)
+    assert max(verdicts["weak_max_real"]) < -1.0
 
 
 def test_candidate_tables_import_into_a_sweep_that_compare_reads(tmp_path, capsys):

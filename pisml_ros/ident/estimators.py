@@ -1165,14 +1165,15 @@ def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Datas
     """``model`` with its integrator equations kept to the terms :func:`~.library.integrator_row_mask`
     admits (``cfg.integrator_terms == "linear"``) and its output filter's equations to those
     :func:`~.library.filter_row_mask` admits (``cfg.filter_terms == "physics"``); else ``model`` itself."""
-    if cfg.integrator_terms != "linear" and cfg.filter_terms != "physics":
+    if cfg.integrator_terms not in ("linear", "error") and cfg.filter_terms != "physics":
         return model
     signals = list(model.state_names) + list(model.input_names)
     mask = np.ones(model.coefficients.shape, dtype=bool)
     meta = dict(model.metadata)
-    if cfg.integrator_terms == "linear":
-        mask &= integrator_row_mask(model.terms, list(model.state_names), signals, cfg.roles)
-        meta["integrator_terms"] = "linear"
+    if cfg.integrator_terms in ("linear", "error"):
+        mask &= integrator_row_mask(model.terms, list(model.state_names), signals, cfg.roles,
+                                    own_loop=cfg.integrator_terms == "linear")
+        meta["integrator_terms"] = cfg.integrator_terms
     coef = np.where(mask, model.coefficients, 0.0)
     if cfg.filter_terms == "physics" and train is not None:
         coef = _filter_rows_physics(model, coef, cfg.roles, train)

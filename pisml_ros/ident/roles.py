@@ -32,7 +32,8 @@ class SignalRoles:
     power : tuple of str
         Filtered-power (droop) states.
     integrators : tuple of str
-        Controller integrator states.
+        Controller integrator states, a loop's d and q axes next to each other (the voltage loop's
+        d, q, then the current loop's d, q: :meth:`integrator_loops`).
     frequency : str or None
         The state the dq frame's frequency follows (the droop power state of a grid-forming
         inverter, a PLL frequency state otherwise): rotating-frame cross-coupling makes each dq
@@ -90,6 +91,14 @@ class SignalRoles:
         for pair in self.other_currents:
             out += list(pair)
         return list(dict.fromkeys(out))
+
+    def integrator_loops(self) -> list[tuple]:
+        """The integrators grouped by control loop: consecutive (d, q) pairs, or one state per loop
+        where their number is odd (no pairing can be read from the order then)."""
+        names = list(self.integrators)
+        if len(names) % 2:
+            return [(name,) for name in names]
+        return [tuple(names[k:k + 2]) for k in range(0, len(names), 2)]
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
