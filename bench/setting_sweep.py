@@ -265,7 +265,8 @@ def format_summary(data: dict) -> str:
         text += (f"; operating point wrong (ΔQ above {OPERATING_POINT_DQ_LIMIT} p.u. or no equilibrium) "
                  f"{s['operating_point_wrong']} of {s['operating_point_measured']} measured")
     if s["microgrid_measured"]:
-        text += f"; microgrid or weak-grid verdict wrong {s['microgrid_wrong']} of {s['microgrid_measured']} measured"
+        text += (f"; microgrid or weak-grid verdict wrong {s['microgrid_wrong']} of "
+                 f"{s['microgrid_measured']} measured")
     if "seconds_median" in s:
         text += f", time median {s['seconds_median']:.1f} worst {s['seconds_worst']:.1f} s"
     return text

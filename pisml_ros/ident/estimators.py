@@ -1165,14 +1165,15 @@ def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Datas
     """``model`` with its integrator equations kept to the terms :func:`~.library.integrator_row_mask`
     admits (``cfg.integrator_terms == "linear"``) and its output filter's equations to those
     :func:`~.library.filter_row_mask` admits (``cfg.filter_terms == "physics"``); else ``model`` itself."""
-    if cfg.integrator_terms not in ("linear", "error") and cfg.filter_terms != "physics":
+    if cfg.integrator_terms == "any" and cfg.filter_terms != "physics":
         return model
     signals = list(model.state_names) + list(model.input_names)
     mask = np.ones(model.coefficients.shape, dtype=bool)
     meta = dict(model.metadata)
-    if cfg.integrator_terms in ("linear", "error"):
+    if cfg.integrator_terms != "any":
         mask &= integrator_row_mask(model.terms, list(model.state_names), signals, cfg.roles,
-                                    own_loop=cfg.integrator_terms == "linear")
+                                    own_loop=cfg.integrator_terms == "linear",
+                                    inner_loops=cfg.integrator_terms != "cascade")
         meta["integrator_terms"] = cfg.integrator_terms
     coef = np.where(mask, model.coefficients, 0.0)
     if cfg.filter_terms == "physics" and train is not None:
