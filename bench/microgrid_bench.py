@@ -71,6 +71,10 @@ def assess(config: dict, target, reference: dict | None = None) -> dict:
             eigs = np.array([complex(re, im) for re, im in report["eigenvalues"]])
             entry.update(max_real=report["max_real"], p=report["units"][0]["p"], q=report["units"][0]["q"],
                          eigenvalues=[[z.real, z.imag] for z in eigs])
+            if report.get("alternatives"):  # the target's candidates that fitted its records about as well
+                found = report["alternatives"]
+                entry["alternatives"] = {"max_real": [item["max_real"] for item in found["candidates"]],
+                                         "agree": found["agree"]}
             if reference is not None and reference["grid"][str(ug)].get("eigenvalues"):
                 truth = np.array([complex(re, im) for re, im in reference["grid"][str(ug)]["eigenvalues"]])
                 entry["wasserstein"] = spectrum_wasserstein(eigs, truth)
@@ -125,31 +129,35 @@ def grid_strength(target) -> dict:
 
 
 def quick_verdicts(target) -> dict:
-    """The two stability verdicts of ``target`` (a system, or None for the plant) that
-    ``bench/setting_sweep.py run --microgrid`` keeps per recording, without the boundary sweeps and the
-    load step of :func:`assess`: the 3-bus microgrid's largest real part with the grid source at
-    1.0 p.u. (None: no operating point), and the weak-grid sweep's largest real parts at 1.0 p.u. (at
-    each x of WEAK_X)."""
-    from pisml_ros.analysis.microgrid import (microgrid_from_config, parameter_sweep, read_microgrid_config,
-                                              with_setting, with_unit_model)
-    config, loaded = read_microgrid_config(CONFIG), {}
+    """The stability verdicts of ``target`` (a system, or None for the plant) that
+    ``bench/setting_sweep.py run`` keeps per recording, without the boundary sweeps and the load
+    step of :func:`assess`: the 3-bus microgrid's largest real part with the grid source at 1.0 p.u.
+    (None: no operating point), the weak-grid sweep's at 1.0 p.u. (at each x of WEAK_X), and the
+    same of each of the target's alternatives (the fit's candidates that reproduced its records
+    about as well: ``grid_tied_alternatives``, a list; ``weak_alternatives``, a list per x)."""
+    from pisml_ros.analysis.microgrid import microgrid_from_config, read_microgrid_config, with_setting, with_unit_model
+
+    def verdicts(config, base):
+        try:
+            grid, inputs = microgrid_from_config(config, base, loaded=loaded)
+            x = grid.equilibrium(*inputs)
+            own = float(np.max(np.linalg.eigvals(grid.jacobian(x, inputs)).real))
+        except Exception:  # no operating point of this microgrid: a verdict of its own
+            return None, []
+        return own, [item["max_real"] for item in grid.alternative_max_reals(x, inputs)]
+
+    loaded = {}
+    config = read_microgrid_config(CONFIG)
     if target is not None:
         config, loaded = with_unit_model(config, "target", target, CONFIG.parent)
-    try:
-        grid = microgrid_from_config(config, CONFIG.parent, loaded=loaded)[0]
-        grid_tied = float(np.max(grid.eigenvalues(1.0, 0.0).real))
-    except Exception:  # no operating point of this microgrid: a verdict of its own
-        grid_tied = None
-    weak, weak_loaded = read_microgrid_config(WEAK_GRID), {}
+    grid_tied, grid_tied_alternatives = verdicts(config, CONFIG.parent)
+    weak = with_setting(read_microgrid_config(WEAK_GRID), "grid.ug", 1.0)
     if target is not None:
-        weak, weak_loaded = with_unit_model(weak, "target", target, WEAK_GRID.parent)
-    try:
-        sweep = parameter_sweep(with_setting(weak, "grid.ug", 1.0), "lines.0.x", WEAK_X, WEAK_GRID.parent,
-                                loaded=weak_loaded)
-        weak_max_real = [p["max_real"] for p in sweep["points"]]
-    except Exception:  # a sweep that cannot start (no operating point at all)
-        weak_max_real = [None] * len(WEAK_X)
-    return {"grid_tied_max_real": grid_tied, "weak_max_real": weak_max_real}
+        weak, more = with_unit_model(weak, "target", target, WEAK_GRID.parent)
+        loaded.update(more)
+    found = [verdicts(with_setting(weak, "lines.0.x", x), WEAK_GRID.parent) for x in WEAK_X]
+    return {"grid_tied_max_real": grid_tied, "weak_max_real": [own for own, _ in found],
+            "grid_tied_alternatives": grid_tied_alternatives, "weak_alternatives": [others for _, others in found]}
 
 
 def wrong_verdicts(row: dict, truth: dict, ug: float) -> list:
@@ -196,9 +204,13 @@ def write_markdown(results: dict, path: Path) -> None:
              f"{STEP[2] * 1e3:g} ms, {STEP[3] * 1e3:g} ms in all, from each microgrid's own operating point; the "
              "relative L2 error (%) of each unit's injected current (network frame) against the true "
              "microgrid's, target / aux1 / aux2 (the paper's figures of the 3-bus transient).", "",
-             "| target | P | Q | max Re at 0.8 / 1.0 / 1.2 | W at 0.8 / 1.0 / 1.2 | boundary in aux1 mp | "
-             "load step, current error % |",
-             "|---|---|---|---|---|---|---|"]
+             "Alternatives: the max Re at 1.0 p.u. of the microgrid with each of the target's alternatives in its "
+             "place (the fit's other candidates within the selection's tolerance of the best training error, kept "
+             "in the model's metadata); \"open\": one of them gives the other verdict, and `pisml microgrid` says "
+             "the records do not decide.", "",
+             "| target | P | Q | max Re at 0.8 / 1.0 / 1.2 | W at 0.8 / 1.0 / 1.2 | alternatives at 1.0 | "
+             "boundary in aux1 mp | load step, current error % |",
+             "|---|---|---|---|---|---|---|---|"]
 
     def row_text(name, row):
         at = row["grid"]
@@ -211,8 +223,11 @@ def write_markdown(results: dict, path: Path) -> None:
         errors = row.get("transient_error")
         step = " / ".join(cell(v) for v in errors.values()) if errors else (
             "failed" if "transient_error_text" in row else "—")
-        return (f"| {name} | {cell(one.get('p'), 4)} | {cell(one.get('q'), 4)} | {res} | {ws} | {bounds} | "
-                f"{step} |")
+        others = one.get("alternatives")
+        rivals = "—" if not others else (", ".join("no eq." if v is None else f"{v:.3g}" for v in others["max_real"])
+                                         + ("" if others["agree"] else " (open)"))
+        return (f"| {name} | {cell(one.get('p'), 4)} | {cell(one.get('q'), 4)} | {res} | {ws} | {rivals} | "
+                f"{bounds} | {step} |")
 
     lines.append(row_text("true plant", truth))
     for row in results["rows"]:

@@ -72,6 +72,21 @@ def microgrid_right(row: dict) -> bool | None:
     return row["mg_max_real"] is not None and row["mg_max_real"] < 0 and all(w is not None and w < 0 for w in weak)
 
 
+def microgrid_points(row: dict) -> list:
+    """``(own, alternatives)`` largest real parts at each point of the row's microgrid verdicts (the
+    3-bus microgrid, then each weak line): the chosen model's, and its alternatives' (the fit's
+    candidates that reproduced the records about as well; ``[]`` in rows from before they were kept)."""
+    weak = row.get("weak_max_real") or []
+    others = [row.get("mg_alternatives") or []] + list(row.get("weak_alternatives") or [[]] * len(weak))
+    return list(zip([row.get("mg_max_real")] + list(weak), others))
+
+
+def flagged(own, alternatives) -> bool:
+    """Whether a model's alternatives leave its verdict at one point open: one of them gives the
+    other sign, or has no operating point where the model has one (or the reverse)."""
+    return any((alt is None) != (own is None) or (alt is not None and (alt < 0) != (own < 0)) for alt in alternatives)
+
+
 def meets(row: dict) -> dict:
     """Which of the issue's 40 dB targets one recording's row meets (``None``: not measured)."""
     finite = row.get("iod") is not None and row.get("ood") is not None
@@ -86,6 +101,13 @@ def meets(row: dict) -> dict:
     out["operating_point"] = None if "op_dq" not in row else (
         row["op_dq"] is not None and row["op_dq"] <= OPERATING_POINT_DQ_LIMIT)
     out["microgrid"] = microgrid_right(row)
+    # where the verdicts are measured: whether the alternatives flag every wrong one as open (the
+    # analysis then says the records do not decide), and whether they flag a right one (a false alarm)
+    points = microgrid_points(row) if out["microgrid"] is not None else []
+    wrong = [(own, others) for own, others in points if own is None or own >= 0]
+    out["microgrid_wrong_flagged"] = bool(wrong) and all(flagged(own, others) for own, others in wrong)
+    out["microgrid_false_alarm"] = any(flagged(own, others) for own, others in points
+                                       if own is not None and own < 0)
     return out
 
 
@@ -102,7 +124,9 @@ def summary(rows: list[dict]) -> dict:
            "operating_point_wrong": sum(v["operating_point"] is False for v in verdicts),
            "operating_point_measured": sum(v["operating_point"] is not None for v in verdicts),
            "microgrid_wrong": sum(v["microgrid"] is False for v in verdicts),
-           "microgrid_measured": sum(v["microgrid"] is not None for v in verdicts)}
+           "microgrid_measured": sum(v["microgrid"] is not None for v in verdicts),
+           "microgrid_wrong_flagged": sum(v["microgrid_wrong_flagged"] for v in verdicts),
+           "microgrid_false_alarms": sum(v["microgrid_false_alarm"] for v in verdicts)}
     if rows:
         out.update(iod_median=float(np.median(iod)), iod_worst=float(np.max(iod)),
                    ood_median=float(np.median(ood)), ood_worst=float(np.max(ood)),
@@ -187,7 +211,9 @@ def run(args) -> int:
         row = scored_row(est.model_, plant, test, grid, truth)
         if default_plant:
             verdicts = quick_verdicts(est.model_)
-            row.update(mg_max_real=verdicts["grid_tied_max_real"], weak_max_real=verdicts["weak_max_real"])
+            row.update(mg_max_real=verdicts["grid_tied_max_real"], weak_max_real=verdicts["weak_max_real"],
+                       mg_alternatives=verdicts["grid_tied_alternatives"],
+                       weak_alternatives=verdicts["weak_alternatives"])
         if args.models:
             Path(args.models).mkdir(parents=True, exist_ok=True)
             est.model_.save(Path(args.models) / f"{args.name}_{seed}.json")
@@ -250,6 +276,8 @@ def format_row(row: dict) -> str:
         weak = [x for x, w in zip(WEAK_X, row.get("weak_max_real") or []) if w is None or w >= 0]
         text += f", weak grid unstable at x {weak}" if weak else ""
         text += " [microgrid wrong]" if verdict["microgrid"] is False else ""
+        text += " [flagged by its alternatives]" if verdict["microgrid_wrong_flagged"] else ""
+        text += " [false alarm of its alternatives]" if verdict["microgrid_false_alarm"] else ""
     return text
 
 
@@ -266,7 +294,8 @@ def format_summary(data: dict) -> str:
                  f"{s['operating_point_wrong']} of {s['operating_point_measured']} measured")
     if s["microgrid_measured"]:
         text += (f"; microgrid or weak-grid verdict wrong {s['microgrid_wrong']} of "
-                 f"{s['microgrid_measured']} measured")
+                 f"{s['microgrid_measured']} measured, {s['microgrid_wrong_flagged']} of those flagged by the "
+                 f"model's alternatives, {s['microgrid_false_alarms']} false alarms")
     if "seconds_median" in s:
         text += f", time median {s['seconds_median']:.1f} worst {s['seconds_worst']:.1f} s"
     return text

@@ -212,13 +212,23 @@ def cmd_data_info(args) -> int:
     return 0
 
 
-def _print_uncertainty(uncertainty: dict | None, whose: str) -> None:
-    """The line on how far the data pin a verdict (a report's ``uncertainty``), if it has one."""
+def _print_uncertainty(report: dict, whose: str) -> None:
+    """The lines on how far the data pin a report's verdict: its ``uncertainty`` (noise alone) and
+    its ``alternatives`` (the fit's other candidates that reproduced the records about as well)."""
+    from .analysis.operating_point import alternatives_note
+
+    uncertainty = report.get("uncertainty")
     if uncertainty:
         low, high = uncertainty["max_real_interval"]
         print(f"  {whose} pin the largest real part to {low:.4g} .. {high:.4g} 1/s (2 std, noise alone): "
               + ("stability undetermined by the data" if uncertainty["verdict"] == "undetermined"
                  else f"{uncertainty['verdict']} either way"))
+    alternatives = report.get("alternatives")
+    if alternatives:
+        note = alternatives_note(alternatives)
+        print(f"  caution: stability {note}" if note else
+              f"  the {len(alternatives['candidates'])} other candidate(s) that fit the records about as well "
+              f"give the same verdict")
 
 
 def cmd_analyse(args) -> int:
@@ -255,7 +265,7 @@ def cmd_analyse(args) -> int:
     print(f"operating point ug = {op['ug']:g} p.u., theta_g = {op['theta_g']:g} rad: "
           f"{'STABLE' if report['stable'] else 'UNSTABLE'} (max real part {report['max_real']:.4g} 1/s, "
           f"min damping {report['min_damping']:.3f})")
-    _print_uncertainty(report.get("uncertainty"), "the data")
+    _print_uncertainty(report, "the data")
     print(f"  {'eigenvalue (1/s)':>28}  {'damping':>8}  {'freq (Hz)':>10}  dominant states")
     for (re, im), zeta, freq, dom in zip(report["eigenvalues"], report["damping"], report["frequencies_hz"],
                                           report["dominant_states"]):
@@ -404,7 +414,7 @@ def cmd_microgrid(args) -> int:
           f"{microgrid.n_states} states; {where}: "
           f"{'STABLE' if report['stable'] else 'UNSTABLE'} (max real part {report['max_real']:.4g} 1/s, "
           f"min damping {report['min_damping']:.3f})")
-    _print_uncertainty(report.get("uncertainty"), "the identified units' data")
+    _print_uncertainty(report, "the identified units' data")
     for unit in report["units"]:
         line = (f"  unit {unit['name']} ({unit['kind']}) at bus {unit['bus']}: sees {unit['ug']:.4f} p.u., "
                 f"{unit['theta_g']:.4f} rad; delivers P {unit['p']:.4f}, Q {unit['q']:.4f} p.u.")

@@ -537,3 +537,37 @@ def test_a_replay_keeps_what_came_before_a_divergence_and_a_fits_batch_does_not(
     # a fit's batch sees the run as one failure: NaN throughout
     [batch] = simulate_many(model, [np.ones(1)], [np.ones((20, 2))], 0.1)
     assert np.all(np.isnan(batch))
+
+
+def test_the_alternatives_rebuild_from_the_json_and_say_whether_the_verdict_is_open(tmp_path, truth):
+    from pisml_ros.analysis.operating_point import alternatives_note, operating_point_report
+    from pisml_ros.ident.estimators import alternative_entry
+
+    model, _ = truth
+    # a rival with a leaky voltage integrator turned into a growing one, and a copy of the model
+    rival = ExplicitModel(model.state_names, model.input_names, model.terms + ["phi_d"],
+                          np.vstack([model.coefficients, np.eye(13)[3] * 40.0]))
+    chosen = ExplicitModel(model.state_names, model.input_names, model.terms, model.coefficients,
+                           dict(model.metadata, alternatives=[alternative_entry("same", model, 2.0)]))
+    path = chosen.save(tmp_path / "m.json")
+    loaded = ExplicitModel.load(path)
+    (name, same), = loaded.alternatives()
+    assert name == "same" and np.allclose(same.vector_field(*_sample(model)), model.vector_field(*_sample(model)))
+    # only the terms it uses are written
+    assert len(loaded.metadata["alternatives"][0]["terms"]) == int(np.any(model.coefficients != 0, axis=1).sum())
+    report = operating_point_report(loaded, 1.0)
+    assert report["alternatives"]["agree"] and alternatives_note(report["alternatives"]) == ""
+    chosen.metadata["alternatives"].append(alternative_entry("rival", rival, 2.1))
+    report = operating_point_report(chosen, 1.0)
+    assert report["stable"] and not report["alternatives"]["agree"]
+    assert report["alternatives"]["candidates"][1]["max_real"] > 0
+    assert "not decided by the records: 2 candidate(s)" in alternatives_note(report["alternatives"])
+    # a malformed entry is named, not a crash deep inside
+    chosen.metadata["alternatives"] = [{"name": "x", "terms": ["phi_d"], "coefficients": [[1.0, 2.0]]}]
+    with pytest.raises(ModelFormatError, match=r"metadata.alternatives\[0\]: field coefficients has shape"):
+        chosen.alternatives()
+
+
+def _sample(model):
+    rng = np.random.default_rng(0)
+    return rng.normal(size=(5, model.n_states)), rng.normal(size=(5, 2))

@@ -10,7 +10,7 @@ from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum
 from pisml_ros.data import Dataset, Trajectory, read_dataset, write_dataset
 from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
 from pisml_ros.ident.backbone import fit_backbone, noise_moments, sparse_regression
-from pisml_ros.ident.estimators import NO_SMALLSIGNAL_WARNING
+from pisml_ros.ident.estimators import MAX_ALTERNATIVES, NO_SMALLSIGNAL_WARNING
 from pisml_ros.ident.library import coupling_separation, physics_library
 from pisml_ros.ident.trajfit import backward_elimination
 from pisml_ros.model import ExplicitModel
@@ -315,6 +315,11 @@ def test_pisml_pipeline_stages_and_model(train, small, test_set):
     again = ExplicitModel.from_dict(json.loads(model.to_json()))
     x, u = train.trajectories[1].x[:3], train.trajectories[1].u[:3]
     np.testing.assert_allclose(again.vector_field(x, u), model.vector_field(x, u), rtol=1e-12)
+    # ... and the candidates that fitted about as well (the selection's tolerance), each its own field
+    assert len(again.alternatives()) <= MAX_ALTERNATIVES
+    for name, alternative in again.alternatives():
+        assert name != selection["chosen"] and np.isfinite(selection["training_error_pct"][name])
+        np.testing.assert_allclose(alternative.vector_field(x, u), est.candidates_[name].vector_field(x, u), rtol=1e-12)
     errs = protocol_errors(model, test_set)
     assert errs["iod"] < 10 and errs["ood"] < 10
     eig = model.eigenvalues(0.8, 0.0)
@@ -1749,3 +1754,15 @@ def test_refinements_run_side_by_side_report_from_the_caller_and_stop_together()
     with pytest.raises(IdentificationCancelled):
         _side_by_side(failing, ["good", "good"], cancel, workers=2)
     assert stopped == ["_StoppedBeside", "_StoppedBeside"]
+
+
+def test_rivals_are_the_eligible_candidates_near_the_best_score():
+    from pisml_ros.ident.estimators import rival_names
+
+    scores = {"refined": 2.2, "pruned +0.1 %": 3.2, "pruned +0.1 % x2": 3.5, "backbone": 2.0, "distilled": np.inf}
+    eligible = ["refined", "pruned +0.1 %", "pruned +0.1 % x2", "distilled"]  # the backbone is not eligible
+    assert rival_names("pruned +0.1 %", eligible, scores, 0.5) == ["refined"]
+    assert rival_names("refined", eligible, scores, 0.5) == ["pruned +0.1 %"]
+    assert rival_names("refined", eligible, scores, 0.7) == ["pruned +0.1 %", "pruned +0.1 % x2"]
+    assert rival_names("refined", eligible, scores, 0.7, limit=1) == ["pruned +0.1 %"]
+    assert rival_names("distilled", ["distilled"], scores, 0.5) == []

@@ -328,3 +328,24 @@ def test_cli_microgrid_with_an_identified_unit_and_a_sweep(tmp_path):
     assert bad.returncode == 2 and "UNIT one of the configuration's units ['target', 'aux1', 'aux2']" in bad.stderr
     missing = pisml("microgrid", "--config", tmp_path / "none.yaml", check=False)
     assert missing.returncode == 2 and "none.yaml" in missing.stderr
+
+
+def test_the_alternatives_of_an_identified_unit_each_take_its_place():
+    """A unit whose alternative (a candidate that fitted its records as well) has a larger droop
+    gain: the 3-bus microgrid with the alternative in the unit's place is unstable where the unit's
+    own is stable, and the report says the verdict is open (analysis.operating_point.alternative_verdicts)."""
+    from pisml_ros.ident.estimators import alternative_entry
+
+    model = plant_as_explicit_model(InverterPlant())
+    rival = plant_as_explicit_model(InverterPlant(PlantParameters(mp=0.2)))
+    model.metadata["alternatives"] = [alternative_entry("rival", rival, 1.0)]
+    grid = three_bus(model)
+    x = grid.equilibrium(1.0, 0.0)
+    found = grid.alternative_max_reals(x, (1.0, 0.0))
+    assert [(item["unit"], item["name"]) for item in found] == [("target", "rival")]
+    assert found[0]["max_real"] == pytest.approx(float(three_bus(rival).eigenvalues(1.0).real.max()), abs=1e-6)
+    assert grid.units[0].system is model  # put back
+    report = microgrid_report(grid, 1.0, 0.0)
+    assert report["stable"] and found[0]["max_real"] > 0
+    assert report["alternatives"]["agree"] is False and report["alternatives"]["max_real_range"][1] > 0
+    assert "alternatives" not in microgrid_report(three_bus(InverterPlant()), 1.0, 0.0)  # nothing identified

@@ -23,7 +23,7 @@ def test_seeds_parse_ranges_and_reject_words():
 def test_a_recording_meets_each_target_on_its_own_figures():
     good = setting_sweep.meets(_row(0.3, 0.6, 80))
     assert good == {"accuracy": True, "no_spurious": True, "compression": True, "all": True, "operating_point": None,
-                    "microgrid": None}
+                    "microgrid": None, "microgrid_wrong_flagged": False, "microgrid_false_alarm": False}
     # compression from the hybrid's own count where the row has it, else the default hybrid's 84
     assert setting_sweep.meets(_row(0.3, 0.6, 90, hybrid=21000))["compression"] is False
     assert setting_sweep.meets(_row(0.3, 0.6, 90, hybrid=30000))["compression"] is True
@@ -48,6 +48,15 @@ def test_microgrid_verdicts_count_against_the_plants():
     assert (counts["microgrid_wrong"], counts["microgrid_measured"]) == (1, 2)
     text = setting_sweep.format_row(dict(stable, weak_max_real=[-0.4] * 8 + [0.2]))
     assert "weak grid unstable at x [1.5]" in text and "[microgrid wrong]" in text
+    # the alternatives: a wrong verdict they contradict is flagged, a right one they contradict is a false alarm
+    wrong = dict(stable, mg_max_real=0.1, mg_alternatives=[-0.3], weak_alternatives=[[-0.4], [-0.3]])
+    assert setting_sweep.meets(wrong)["microgrid_wrong_flagged"] and not setting_sweep.meets(wrong)["microgrid_false_alarm"]
+    unflagged = dict(wrong, mg_alternatives=[0.2])
+    assert not setting_sweep.meets(unflagged)["microgrid_wrong_flagged"]
+    alarm = dict(stable, mg_alternatives=[], weak_alternatives=[[0.1], [None]])
+    assert setting_sweep.meets(alarm)["microgrid_false_alarm"] and setting_sweep.meets(alarm)["microgrid"]
+    counts = setting_sweep.summary([wrong, unflagged, alarm])
+    assert (counts["microgrid_wrong"], counts["microgrid_wrong_flagged"], counts["microgrid_false_alarms"]) == (2, 1, 1)
 
 
 def test_quick_verdicts_of_the_plant_are_stable():
@@ -57,6 +66,7 @@ def test_quick_verdicts_of_the_plant_are_stable():
     assert verdicts["grid_tied_max_real"] == pytest.approx(-1.532, abs=0.01)
     assert len(verdicts["weak_max_real"]) == len(microgrid_bench.WEAK_X)
     assert max(verdicts["weak_max_real"]) < -1.0
+    assert verdicts["grid_tied_alternatives"] == [] and verdicts["weak_alternatives"] == [[]] * len(microgrid_bench.WEAK_X)
 
 
 def test_candidate_tables_import_into_a_sweep_that_compare_reads(tmp_path, capsys):

@@ -554,6 +554,32 @@ class Microgrid:
             variance += float(sensitivity @ cov @ sensitivity)
         return float(np.sqrt(max(variance, 0.0)))
 
+    def alternative_max_reals(self, x, u=(1.0, 0.0)) -> list:
+        """The microgrid's largest real part with each alternative of its identified units
+        (:meth:`~pisml_ros.model.explicit.ExplicitModel.alternatives`: candidates that fitted the
+        unit's records about as well) in that unit's place, one at a time, at the operating point
+        followed from ``x``: ``[{"unit", "name", "max_real"}]`` (None: no operating point there).
+        For :func:`~pisml_ros.analysis.operating_point.alternative_verdicts`."""
+        x = np.asarray(x, dtype=float)
+        u = np.asarray(u, dtype=float)
+        out = []
+        for unit in self.units:
+            alternatives = getattr(unit.system, "alternatives", None)
+            if not callable(alternatives):
+                continue
+            own = unit.system
+            for name, model in alternatives(unit.name):
+                try:
+                    unit.system = model
+                    y = self.equilibrium(float(u[0]), float(u[1]), x0=x)
+                    value = float(np.linalg.eigvals(self.jacobian(y, u)).real.max())
+                except (EquilibriumNotFound, ValueError, np.linalg.LinAlgError):
+                    value = None
+                finally:
+                    unit.system = own
+                out.append({"unit": unit.name, "name": name, "max_real": value})
+        return out
+
     def unit_shares(self, participation_row: np.ndarray) -> dict:
         """How much of one mode's participation (a row of
         :attr:`~pisml_ros.analysis.modal.ModalSummary.participation`) sits in each unit's states

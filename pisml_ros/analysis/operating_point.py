@@ -21,8 +21,9 @@ def operating_point_report(system, ug: float, theta_g: float = 0.0) -> dict:
         ``{"operating_point": {"ug", "theta_g", "state": {name: value}},
         "eigenvalues": [[re, im], ...], "damping": [...], "frequencies_hz": [...],
         "dominant_states": [...], "max_real": float, "min_damping": float, "stable": bool}``, plus
-        ``"data_coverage"`` (:func:`data_coverage`) and ``"uncertainty"`` (:func:`verdict_uncertainty`)
-        where the system carries them (identified models).
+        ``"data_coverage"`` (:func:`data_coverage`), ``"uncertainty"`` (:func:`verdict_uncertainty`)
+        and ``"alternatives"`` (:func:`alternative_verdicts`) where the system carries them
+        (identified models).
     """
     return analyse_operating_point(system, ug, theta_g)[0]
 
@@ -53,10 +54,61 @@ def analyse_operating_point(system, ug: float, theta_g: float = 0.0) -> tuple:
     uncertainty = verdict_uncertainty(system, x, (ug, theta_g), report["max_real"])
     if uncertainty is not None:
         report["uncertainty"] = uncertainty
+    alternatives = alternative_verdicts(system, x, (ug, theta_g), report["max_real"])
+    if alternatives is not None:
+        report["alternatives"] = alternatives
     others = other_equilibria(system, (ug, theta_g), x, names)
     if others:
         report["other_equilibria"] = others
     return report, x, summary
+
+
+def alternative_verdicts(system, x, inputs, max_real: float) -> dict | None:
+    """What the candidates that reproduced the identification records about as well as the model
+    (:meth:`~pisml_ros.model.explicit.ExplicitModel.alternatives`; for an assembled microgrid, its
+    identified units', one swapped in at a time: ``system.alternative_max_reals``) say at this
+    operating point: each one's largest real part at its own equilibrium near ``x`` (None: none
+    found there), and whether every one gives the model's verdict (``agree``). Where they do not,
+    the records do not decide stability here: the covariance of :func:`verdict_uncertainty` counts
+    the noise alone, for one set of terms. None where the system carries no alternatives (the
+    plant, baselines, models identified before stop 62)."""
+    from ..equilibrium import EquilibriumNotFound
+
+    u = np.asarray(inputs, dtype=float)
+    assembled = getattr(system, "alternative_max_reals", None)
+    if callable(assembled):
+        found = assembled(x, u)
+    else:
+        alternatives = getattr(system, "alternatives", None)
+        if not callable(alternatives):
+            return None
+        found = []
+        for name, model in alternatives():
+            try:
+                y = model.equilibrium(*u, x0=x)
+                value = float(np.linalg.eigvals(model.jacobian(y, u)).real.max())
+            except (EquilibriumNotFound, ValueError, np.linalg.LinAlgError):
+                value = None
+            found.append({"name": name, "max_real": value})
+    if not found:
+        return None
+    values = [item["max_real"] for item in found if item["max_real"] is not None]
+    return {"candidates": found,
+            "agree": all(item["max_real"] is not None and (item["max_real"] < 0) == (max_real < 0) for item in found),
+            "max_real_range": [min(values + [max_real]), max(values + [max_real])],
+            "basis": "the fit's candidates within the selection's tolerance of the best training error"}
+
+
+def alternatives_note(alternatives: dict | None) -> str:
+    """A line on ``report["alternatives"]`` (:func:`alternative_verdicts`) where the candidates
+    disagree with the model's verdict, else ``""``."""
+    if not alternatives or alternatives["agree"]:
+        return ""
+    low, high = alternatives["max_real_range"]
+    missing = sum(item["max_real"] is None for item in alternatives["candidates"])
+    return (f"not decided by the records: {len(alternatives['candidates'])} candidate(s) that fit them about as "
+            f"well put the largest real part at {low:.3g} .. {high:.3g} 1/s"
+            + (f" ({missing} without an equilibrium here)" if missing else ""))
 
 
 def other_equilibria(system, inputs, x, names) -> list | None:

@@ -197,6 +197,32 @@ class ExplicitModel:
             count += len(expanded.as_ordered_terms()) if expanded != 0 else 0
         return count
 
+    def alternatives(self, source: str = "model") -> list:
+        """The candidates of the fit that reproduced its records about as well as this model
+        (``metadata["alternatives"]``, written by the identification's selection: name, training
+        error, the terms each uses and their coefficients), as ``(name, ExplicitModel)`` pairs over
+        this model's states and inputs; ``[]`` where the metadata hold none.
+
+        Raises
+        ------
+        ModelFormatError
+            For an entry that cannot be rebuilt, named ``<source>: metadata.alternatives[k]``.
+        """
+        entries = self.metadata.get("alternatives") or []
+        if not isinstance(entries, list):
+            raise ModelFormatError(f"{source}: metadata.alternatives must be a list, got {type(entries).__name__}")
+        out = []
+        for k, entry in enumerate(entries):
+            where = f"{source}: metadata.alternatives[{k}]"
+            if not isinstance(entry, dict) or "terms" not in entry or "coefficients" not in entry:
+                raise ModelFormatError(f"{where}: expected an object with terms and coefficients")
+            data = {"format": FORMAT, "states": list(self.state_names), "inputs": list(self.input_names),
+                    "terms": entry["terms"], "coefficients": entry["coefficients"] or np.zeros((0, self.n_states)),
+                    # where to start its equilibrium searches: the chosen model's rest points
+                    "metadata": {"reference_points": self.metadata.get("reference_points") or []}}
+            out.append((str(entry.get("name", f"alternative {k}")), ExplicitModel.from_dict(data, source=where)))
+        return out
+
     # ---------------------------------------------------------------- JSON
     def to_dict(self) -> dict[str, Any]:
         return {

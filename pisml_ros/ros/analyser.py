@@ -40,8 +40,8 @@ from rclpy.node import Node  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from ..analysis.margins import distance_to_boundary, root_locus  # noqa: E402
-from ..analysis.operating_point import (coverage_note, data_coverage, operating_point_report,  # noqa: E402
-                                         other_equilibria_note)
+from ..analysis.operating_point import (alternatives_note, coverage_note, data_coverage,  # noqa: E402
+                                         operating_point_report, other_equilibria_note)
 from ..fileio import atomic_write_text  # noqa: E402
 from .conversions import failed_stability_message, model_from_message, stability_message  # noqa: E402
 
@@ -249,6 +249,9 @@ class AnalyserNode(Node):
             if uncertainty and uncertainty["verdict"] == "undetermined":
                 low_re, high_re = uncertainty["max_real_interval"]
                 message += f" (not decided by the data: max real part {low_re:.3g} .. {high_re:.3g} 1/s, 2 std)"
+            # other candidates that fit the records as well and disagree: the records do not decide
+            rivals = alternatives_note(report.get("alternatives"))
+            message += f" ({rivals})" if rivals else ""
             # a verdict outside the identification data rests on the model's extrapolation: say so
             note = coverage_note(report.get("data_coverage"))
             message += f" ({note})" if note else ""
@@ -261,7 +264,8 @@ class AnalyserNode(Node):
                 "max_real_part": f"{report['max_real']:.6g}", "min_damping_ratio": f"{report['min_damping']:.6g}",
                 "ug_margin": f"{report['ug_margin']:.6g}", "model_id": model_id,
                 "extrapolated": str(bool(note)).lower(), "other_equilibria": str(len(others)),
-                "verdict": uncertainty["verdict"] if uncertainty else ("stable" if report["stable"] else "unstable")}))
+                "verdict": "undetermined" if rivals else (
+                    uncertainty["verdict"] if uncertainty else ("stable" if report["stable"] else "unstable"))}))
             self.get_logger().info(f"{model_id} at ug={ug:g}: {message}, max real part {report['max_real']:.4g} 1/s, "
                                    f"ug margin {report['ug_margin']:.4g}")
         if locus is not None:
