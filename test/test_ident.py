@@ -59,7 +59,7 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"device": "gpu"})
     with pytest.raises(ConfigError, match="refine_prune_budgets must be >= 0"):
         IdentConfig.from_mapping({"refine_prune_budgets": [0.01, -1]})
-    with pytest.raises(ConfigError, match="integrator_terms must be linear, error, cascade or any, got 'quadratic'"):
+    with pytest.raises(ConfigError, match="integrator_terms must be linear, error or any, got 'quadratic'"):
         IdentConfig.from_mapping({"integrator_terms": "quadratic"})
     with pytest.raises(ConfigError, match="refine_stability_points must be records or smallsignal"):
         IdentConfig.from_mapping({"refine_stability_points": "everywhere"})
@@ -1507,12 +1507,6 @@ def test_integrator_equations_without_their_own_loop():
         assert list(mask[:, index[row]]) == [True, True, True, False, False, True]
     # other rows keep every integrator
     assert mask[:, index["vc_d"]].all()
-    cascade = integrator_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles(), own_loop=False,
-                                  inner_loops=False)
-    for row in ("phi_d", "phi_q"):  # the outer loop's rows lose the inner loop's integrators as well
-        assert list(cascade[:, index[row]]) == [True, False, False, False, False, True]
-    for row in ("gamma_d", "gamma_q"):
-        assert list(cascade[:, index[row]]) == list(mask[:, index[row]])
 
 
 def test_filter_equations_keep_the_physics_of_a_rotating_frame_only():

@@ -1207,8 +1207,7 @@ def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Datas
     meta = dict(model.metadata)
     if cfg.integrator_terms != "any":
         mask &= integrator_row_mask(model.terms, list(model.state_names), signals, cfg.roles,
-                                    own_loop=cfg.integrator_terms == "linear",
-                                    inner_loops=cfg.integrator_terms != "cascade")
+                                    own_loop=cfg.integrator_terms == "linear")
         meta["integrator_terms"] = cfg.integrator_terms
     coef = np.where(mask, model.coefficients, 0.0)
     if cfg.filter_terms == "physics" and train is not None:
