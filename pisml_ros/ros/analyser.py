@@ -310,6 +310,8 @@ class AnalyserNode(Node):
         if uncertainty and uncertainty["verdict"] == "undetermined":
             low, high = uncertainty["max_real_interval"]
             verdict += f" (not decided by the data: max real part {low:.3g} .. {high:.3g} 1/s, 2 std)"
+        rivals = alternatives_note(report.get("alternatives"))
+        verdict += f" ({rivals})" if rivals else ""
         deciding = report["weakest_modes"][0] if report["weakest_modes"] else {}
         if deciding.get("note"):  # the verdict rests on a mode faster than the unit's records pin
             verdict += f"; caution: {deciding['note']}"

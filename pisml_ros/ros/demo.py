@@ -340,6 +340,7 @@ def _microgrid_part(out: Path, final, grid: dict, config_path: Path, say) -> Non
     gain for both (``microgrid.json``)."""
     from ..analysis.microgrid import (microgrid_from_config, microgrid_report, parameter_sweep, read_microgrid_config,
                                       with_unit_model)
+    from ..analysis.operating_point import alternatives_note
     from .conversions import model_from_message
 
     config = read_microgrid_config(config_path)
@@ -367,6 +368,9 @@ def _microgrid_part(out: Path, final, grid: dict, config_path: Path, say) -> Non
         say(f"  model {'stable' if grid['stable'] else 'UNSTABLE'}, max Re λ = {grid['max_real']:+.3f} 1/s (weakest "
             f"mode {mode['eigenvalue'][0]:+.3f} {mode['eigenvalue'][1]:+.3f}j: {shares}) | plant "
             f"{'stable' if truth['stable'] else 'UNSTABLE'}, max Re λ = {truth['max_real']:+.3f} 1/s")
+        rivals = alternatives_note(grid.get("alternatives"))
+        if rivals:  # the identification's other candidates, as good on the records, say otherwise
+            say(f"  caution: the model's verdict is {rivals}")
     bounds = part["boundaries"]
     fmt = lambda values_: ", ".join(f"{b:.4f}" for b in values_) or "none"  # noqa: E731
     say(f"  stability boundary in {path} ({values[0]:g}-{values[-1]:g}): model {fmt(bounds['model'])} | plant "
