@@ -127,6 +127,13 @@ def summary(rows: list[dict]) -> dict:
            "microgrid_measured": sum(v["microgrid"] is not None for v in verdicts),
            "microgrid_wrong_flagged": sum(v["microgrid_wrong_flagged"] for v in verdicts),
            "microgrid_false_alarms": sum(v["microgrid_false_alarm"] for v in verdicts)}
+    # the same over every verdict point (the 3-bus microgrid and each weak line of every row)
+    points = [(own, others) for r in rows if microgrid_right(r) is not None for own, others in microgrid_points(r)]
+    wrong = [(own, others) for own, others in points if own is None or own >= 0]
+    out.update(microgrid_points=len(points), microgrid_points_wrong=len(wrong),
+               microgrid_points_wrong_flagged=sum(flagged(own, others) for own, others in wrong),
+               microgrid_points_right_flagged=sum(flagged(own, others) for own, others in points
+                                                  if own is not None and own < 0))
     if rows:
         out.update(iod_median=float(np.median(iod)), iod_worst=float(np.max(iod)),
                    ood_median=float(np.median(ood)), ood_worst=float(np.max(ood)),
@@ -295,7 +302,10 @@ def format_summary(data: dict) -> str:
     if s["microgrid_measured"]:
         text += (f"; microgrid or weak-grid verdict wrong {s['microgrid_wrong']} of "
                  f"{s['microgrid_measured']} measured, {s['microgrid_wrong_flagged']} of those flagged by the "
-                 f"model's alternatives, {s['microgrid_false_alarms']} false alarms")
+                 f"model's alternatives, {s['microgrid_false_alarms']} false alarms; of the "
+                 f"{s['microgrid_points']} verdicts, {s['microgrid_points_wrong']} wrong, "
+                 f"{s['microgrid_points_wrong_flagged']} of those and {s['microgrid_points_right_flagged']} right "
+                 f"ones flagged open")
     if "seconds_median" in s:
         text += f", time median {s['seconds_median']:.1f} worst {s['seconds_worst']:.1f} s"
     return text

@@ -57,6 +57,9 @@ def test_microgrid_verdicts_count_against_the_plants():
     assert setting_sweep.meets(alarm)["microgrid_false_alarm"] and setting_sweep.meets(alarm)["microgrid"]
     counts = setting_sweep.summary([wrong, unflagged, alarm])
     assert (counts["microgrid_wrong"], counts["microgrid_wrong_flagged"], counts["microgrid_false_alarms"]) == (2, 1, 1)
+    # per verdict: wrong's grid-tied point (wrong, flagged), unflagged's (wrong, not), alarm's two weak lines (flagged)
+    assert (counts["microgrid_points"], counts["microgrid_points_wrong"], counts["microgrid_points_wrong_flagged"],
+            counts["microgrid_points_right_flagged"]) == (9, 2, 1, 2)
 
 
 def test_quick_verdicts_of_the_plant_are_stable():
