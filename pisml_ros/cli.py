@@ -226,7 +226,7 @@ def _print_uncertainty(report: dict, whose: str) -> None:
     alternatives = report.get("alternatives")
     if alternatives:
         note = alternatives_note(alternatives)
-        print(f"  caution: stability {note}" if note else
+        print(f"  caution: {note}" if note else
               f"  the {len(alternatives['candidates'])} other candidate(s) that fit the records about as well "
               f"give the same verdict")
 

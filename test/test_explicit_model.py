@@ -561,11 +561,15 @@ def test_the_alternatives_rebuild_from_the_json_and_say_whether_the_verdict_is_o
     report = operating_point_report(chosen, 1.0)
     assert report["stable"] and not report["alternatives"]["agree"]
     assert report["alternatives"]["candidates"][1]["max_real"] > 0
-    assert "not decided by the records: 2 candidate(s)" in alternatives_note(report["alternatives"])
+    assert alternatives_note(report["alternatives"]).startswith("stability not decided by the records: 2 candidate(s)")
     # a malformed entry is named, not a crash deep inside
     chosen.metadata["alternatives"] = [{"name": "x", "terms": ["phi_d"], "coefficients": [[1.0, 2.0]]}]
     with pytest.raises(ModelFormatError, match=r"metadata.alternatives\[0\]: field coefficients has shape"):
         chosen.alternatives()
+    # ... and the report on the model itself stands, saying so
+    report = operating_point_report(chosen, 1.0)
+    assert report["stable"] and "metadata.alternatives[0]" in report["alternatives"]["error"]
+    assert alternatives_note(report["alternatives"]).startswith("the model's alternatives could not be read")
 
 
 def _sample(model):

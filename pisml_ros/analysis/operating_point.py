@@ -71,25 +71,30 @@ def alternative_verdicts(system, x, inputs, max_real: float) -> dict | None:
     found there), and whether every one gives the model's verdict (``agree``). Where they do not,
     the records do not decide stability here: the covariance of :func:`verdict_uncertainty` counts
     the noise alone, for one set of terms. None where the system carries no alternatives (the
-    plant, baselines, models identified before stop 62)."""
+    plant, baselines, models identified before stop 62). Where an entry cannot be rebuilt, the
+    dict says so (``"error"``) and the rest of the report stands."""
     from ..equilibrium import EquilibriumNotFound
+    from ..model import ModelFormatError
 
     u = np.asarray(inputs, dtype=float)
     assembled = getattr(system, "alternative_max_reals", None)
-    if callable(assembled):
-        found = assembled(x, u)
-    else:
-        alternatives = getattr(system, "alternatives", None)
-        if not callable(alternatives):
-            return None
-        found = []
-        for name, model in alternatives():
-            try:
-                y = model.equilibrium(*u, x0=x)
-                value = float(np.linalg.eigvals(model.jacobian(y, u)).real.max())
-            except (EquilibriumNotFound, ValueError, np.linalg.LinAlgError):
-                value = None
-            found.append({"name": name, "max_real": value})
+    alternatives = getattr(system, "alternatives", None)
+    if not callable(assembled) and not callable(alternatives):
+        return None
+    try:
+        if callable(assembled):
+            found = assembled(x, u)
+        else:
+            found = []
+            for name, model in alternatives():
+                try:
+                    y = model.equilibrium(*u, x0=x)
+                    value = float(np.linalg.eigvals(model.jacobian(y, u)).real.max())
+                except (EquilibriumNotFound, ValueError, np.linalg.LinAlgError):
+                    value = None
+                found.append({"name": name, "max_real": value})
+    except ModelFormatError as err:  # a damaged entry costs the alternatives, not the report
+        return {"candidates": [], "agree": False, "max_real_range": [max_real, max_real], "error": str(err)}
     if not found:
         return None
     values = [item["max_real"] for item in found if item["max_real"] is not None]
@@ -104,10 +109,12 @@ def alternatives_note(alternatives: dict | None) -> str:
     disagree with the model's verdict, else ``""``."""
     if not alternatives or alternatives["agree"]:
         return ""
+    if "error" in alternatives:
+        return f"the model's alternatives could not be read ({alternatives['error']})"
     low, high = alternatives["max_real_range"]
     missing = sum(item["max_real"] is None for item in alternatives["candidates"])
-    return (f"not decided by the records: {len(alternatives['candidates'])} candidate(s) that fit them about as "
-            f"well put the largest real part at {low:.3g} .. {high:.3g} 1/s"
+    return (f"stability not decided by the records: {len(alternatives['candidates'])} candidate(s) that fit them "
+            f"about as well put the largest real part at {low:.3g} .. {high:.3g} 1/s"
             + (f" ({missing} without an equilibrium here)" if missing else ""))
 
 

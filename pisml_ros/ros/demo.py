@@ -370,7 +370,7 @@ def _microgrid_part(out: Path, final, grid: dict, config_path: Path, say) -> Non
             f"{'stable' if truth['stable'] else 'UNSTABLE'}, max Re λ = {truth['max_real']:+.3f} 1/s")
         rivals = alternatives_note(grid.get("alternatives"))
         if rivals:  # the identification's other candidates, as good on the records, say otherwise
-            say(f"  caution: the model's verdict is {rivals}")
+            say(f"  caution: {rivals}")
     bounds = part["boundaries"]
     fmt = lambda values_: ", ".join(f"{b:.4f}" for b in values_) or "none"  # noqa: E731
     say(f"  stability boundary in {path} ({values[0]:g}-{values[-1]:g}): model {fmt(bounds['model'])} | plant "
