@@ -146,6 +146,13 @@ def test_initial_model_is_latched_and_bad_models_do_not_stop_the_analyser(probe,
     support = np.flatnonzero(coefficients)
     narrowed["metadata"]["coefficient_covariance"] = covariance_metadata(
         coefficients.shape, support, np.diag((0.3 * coefficients.ravel()[support]) ** 2))
+    # and an alternative of the fit (as good on the records, say) whose voltage integrator grows
+    from pisml_ros.ident.estimators import alternative_entry
+
+    model = ExplicitModel.load(saved)
+    growing = ExplicitModel(model.state_names, model.input_names, model.terms + ["phi_d"],
+                            np.vstack([model.coefficients, 40.0 * (np.arange(13) == 3)]))
+    narrowed["metadata"]["alternatives"] = [alternative_entry("growing", growing, 1.0)]
     saved.write_text(json.dumps(narrowed))
     diags, reports, models = [], [], []
     subs = [probe.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 100),
@@ -182,6 +189,7 @@ def test_initial_model_is_latched_and_bad_models_do_not_stop_the_analyser(probe,
         report = [r for r in reports if r.model_id == "initial:saved"][-1]
         assert report.message.endswith(" (extrapolated: outside the identification data's ug 0.9-1.2)"), report.message
         assert " (not decided by the data: max real part " in report.message, report.message
+        assert " (stability not decided by the records: 1 candidate(s) that fit them about as well" in report.message
         assert spin_until(probe, lambda: diagnostic_values(
             diags, "pisml: stability ug=0.8")[1].get("extrapolated") == "true", 10.0)
         assert diagnostic_values(diags, "pisml: stability ug=0.8")[1].get("verdict") == "undetermined"
