@@ -68,8 +68,12 @@ def microgrid_right(row: dict) -> bool | None:
     plant is); None where not measured (rows from before stop 62, or another plant's recordings)."""
     if "mg_max_real" not in row:
         return None
-    weak = row.get("weak_max_real") or [None]
-    return row["mg_max_real"] is not None and row["mg_max_real"] < 0 and all(w is not None and w < 0 for w in weak)
+    return not any(wrong_verdict(own) for own, _ in microgrid_points(row))
+
+
+def wrong_verdict(own) -> bool:
+    """Whether a largest real part (None: no operating point) is the wrong verdict where the plant is stable."""
+    return own is None or own >= 0
 
 
 def microgrid_points(row: dict) -> list:
@@ -104,10 +108,9 @@ def meets(row: dict) -> dict:
     # where the verdicts are measured: whether the alternatives flag every wrong one as open (the
     # analysis then says the records do not decide), and whether they flag a right one (a false alarm)
     points = microgrid_points(row) if out["microgrid"] is not None else []
-    wrong = [(own, others) for own, others in points if own is None or own >= 0]
+    wrong = [(own, others) for own, others in points if wrong_verdict(own)]
     out["microgrid_wrong_flagged"] = bool(wrong) and all(flagged(own, others) for own, others in wrong)
-    out["microgrid_false_alarm"] = any(flagged(own, others) for own, others in points
-                                       if own is not None and own < 0)
+    out["microgrid_false_alarm"] = any(flagged(own, others) for own, others in points if not wrong_verdict(own))
     return out
 
 
@@ -129,11 +132,11 @@ def summary(rows: list[dict]) -> dict:
            "microgrid_false_alarms": sum(v["microgrid_false_alarm"] for v in verdicts)}
     # the same over every verdict point (the 3-bus microgrid and each weak line of every row)
     points = [(own, others) for r in rows if microgrid_right(r) is not None for own, others in microgrid_points(r)]
-    wrong = [(own, others) for own, others in points if own is None or own >= 0]
+    wrong = [(own, others) for own, others in points if wrong_verdict(own)]
     out.update(microgrid_points=len(points), microgrid_points_wrong=len(wrong),
                microgrid_points_wrong_flagged=sum(flagged(own, others) for own, others in wrong),
                microgrid_points_right_flagged=sum(flagged(own, others) for own, others in points
-                                                  if own is not None and own < 0))
+                                                  if not wrong_verdict(own)))
     if rows:
         out.update(iod_median=float(np.median(iod)), iod_worst=float(np.max(iod)),
                    ood_median=float(np.median(ood)), ood_worst=float(np.max(ood)),
@@ -280,7 +283,7 @@ def format_row(row: dict) -> str:
         from microgrid_bench import WEAK_X
 
         text += f", microgrid {row['mg_max_real'] if row['mg_max_real'] is None else round(row['mg_max_real'], 3)}"
-        weak = [x for x, w in zip(WEAK_X, row.get("weak_max_real") or []) if w is None or w >= 0]
+        weak = [x for x, w in zip(WEAK_X, row.get("weak_max_real") or []) if wrong_verdict(w)]
         text += f", weak grid unstable at x {weak}" if weak else ""
         text += " [microgrid wrong]" if verdict["microgrid"] is False else ""
         text += " [flagged by its alternatives]" if verdict["microgrid_wrong_flagged"] else ""
