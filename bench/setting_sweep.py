@@ -88,7 +88,9 @@ def microgrid_points(row: dict) -> list:
 def flagged(own, alternatives) -> bool:
     """Whether a model's alternatives leave its verdict at one point open: one of them gives the
     other sign, or has no operating point where the model has one (or the reverse)."""
-    return any((alt is None) != (own is None) or (alt is not None and (alt < 0) != (own < 0)) for alt in alternatives)
+    from pisml_ros.analysis.operating_point import verdict_differs
+
+    return any(verdict_differs(own, alt) for alt in alternatives)
 
 
 def meets(row: dict) -> dict:

@@ -98,10 +98,17 @@ def alternative_verdicts(system, x, inputs, max_real: float) -> dict | None:
     if not found:
         return None
     values = [item["max_real"] for item in found if item["max_real"] is not None]
-    return {"candidates": found,
-            "agree": all(item["max_real"] is not None and (item["max_real"] < 0) == (max_real < 0) for item in found),
+    return {"candidates": found, "agree": not any(verdict_differs(max_real, item["max_real"]) for item in found),
             "max_real_range": [min(values + [max_real]), max(values + [max_real])],
             "basis": "the fit's candidates within the selection's tolerance of the best training error"}
+
+
+def verdict_differs(max_real: float | None, other: float | None) -> bool:
+    """Whether two largest real parts (None: no operating point) give different stability
+    verdicts: one stable and one not, or one with an operating point and one without."""
+    if max_real is None or other is None:
+        return (max_real is None) != (other is None)
+    return (max_real < 0) != (other < 0)
 
 
 def alternatives_note(alternatives: dict | None) -> str:

@@ -1198,7 +1198,7 @@ def _stability_anchors(train: Dataset, smallsignal: Dataset | None, cfg: IdentCo
 
 def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Dataset | None = None) -> ExplicitModel:
     """``model`` with its integrator equations kept to the terms :func:`~.library.integrator_row_mask`
-    admits (``cfg.integrator_terms == "linear"``) and its output filter's equations to those
+    admits (``cfg.integrator_terms`` "linear" or "error") and its output filter's equations to those
     :func:`~.library.filter_row_mask` admits (``cfg.filter_terms == "physics"``); else ``model`` itself."""
     if cfg.integrator_terms == "any" and cfg.filter_terms != "physics":
         return model
