@@ -65,7 +65,7 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"refine_stability_points": "everywhere"})
     with pytest.raises(ConfigError, match="refine_stability_weight must be >= 0"):
         IdentConfig.from_mapping({"refine_stability_weight": -1})
-    with pytest.raises(ConfigError, match="refine_starts must be both or fallback, got 'first'"):
+    with pytest.raises(ConfigError, match="refine_starts must be auto, both or fallback, got 'first'"):
         IdentConfig.from_mapping({"refine_starts": "first"})
     with pytest.raises(ConfigError, match="refine_stage_prune_budget must be >= 0"):
         IdentConfig.from_mapping({"refine_stage_prune_budget": -0.1})
@@ -358,14 +358,15 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     # noisy records are refined in growing windows anyway: no fallback on top
     from pisml_ros.plant.noise import add_measurement_noise
 
-    # (refine_rescue_ratio 0: the rescue of noisy fits always runs here, tested below; the first
-    # start's family taken as sufficient, so that the second start is skipped and comes after the rescue)
+    # (refine_rescue_ratio 0: the rescue of noisy fits always runs here, tested below; refine_starts
+    # fallback with the first start's family taken as sufficient, so that the second start is skipped
+    # and comes after the rescue)
     from pisml_ros.ident import estimators
 
     monkeypatch.setattr(estimators, "_refinement_suffices", lambda *args, **kwargs: True)
     updates.clear()
     noisy = make_estimator("pisml", IdentConfig.from_mapping(
-        {**FAST, "clean_growing_error": 0.0, "refine_rescue_ratio": 0.0})).fit(
+        {**FAST, "clean_growing_error": 0.0, "refine_rescue_ratio": 0.0, "refine_starts": "fallback"})).fit(
         add_measurement_noise(train, 40.0, seed=1), add_measurement_noise(small, 40.0, seed=2),
         callback=updates.append)
     progress = [u.progress for u in updates]
@@ -448,13 +449,40 @@ def test_noisy_measured_inputs_are_held_at_their_means_where_they_are_constant(t
     assert np.all((swung.trajectories[0].u - true).std(axis=0) < 1.25 * (measured - true).std(axis=0))
 
 
+def test_both_refinement_starts_run_where_torch_has_a_second_thread():
+    import torch
+
+    from pisml_ros.ident.estimators import _both_starts
+
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        assert not _both_starts(IdentConfig()) and _both_starts(IdentConfig.from_mapping({"refine_starts": "both"}))
+        torch.set_num_threads(2)
+        assert _both_starts(IdentConfig()) and IdentConfig().refine_starts == "auto"
+        assert not _both_starts(IdentConfig.from_mapping({"refine_starts": "fallback"}))
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_a_fit_on_noisy_inputs_holds_them_and_says_so(train, small):
+    import torch
+
     from pisml_ros.ident import selection_warnings
     from pisml_ros.plant.noise import add_measurement_noise
 
     noisy_train = add_measurement_noise(train, 40.0, seed=6, include_inputs=True)
     noisy_small = add_measurement_noise(small, 40.0, seed=7, include_inputs=True)
-    est = make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(noisy_train, noisy_small)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        est = make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(noisy_train, noisy_small)
+    finally:
+        torch.set_num_threads(threads)
+    # the default on two threads: the second start's family refined side by side, scored and competing
+    second = est.explicit_model_.metadata["refinement_second_start"]
+    assert second["run"] and second["side_by_side"] and est.metrics_["refinement_threads"] == 2.0
+    assert f"refined from {second['start']}" in est.explicit_model_.metadata["selection"]["training_error_pct"]
     held = est.explicit_model_.metadata["identification"]["inputs_denoised"]
     assert set(held) == {"training", "smallsignal"} and held["training"]["ug"]["snr_db"] == pytest.approx(40, abs=2)
     assert any("the measured inputs carry noise (ug at 40 dB SNR" in w for w in selection_warnings(est.explicit_model_))

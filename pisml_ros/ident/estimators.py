@@ -801,11 +801,14 @@ class PISML(_Estimator):
             shared = term_set(candidates[starts[0]].terms, signals).thread_safe_gradient()
             # on clean data the second half of the refinement's progress is kept for the fallback below
             share = 0.28 if noisy or not cfg.refine_growing_windows else 0.14
-            if cfg.refine_starts == "both" or len(starts) == 1 or not shared:
+            if _both_starts(cfg) or len(starts) == 1 or not shared:
                 outcomes = _side_by_side(refine_from, starts, lambda fraction, losses: self._emit(
                     "refinement", 0.7 + share * fraction, losses=losses))
                 for k, outcome in enumerate(outcomes):
                     add(k, *outcome)
+                if len(starts) > 1:
+                    explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": True,
+                                                                    "side_by_side": True}
                 self.metrics_["refinement_threads"] = float(_threads_for(len(starts)))
             else:
                 # the first start alone on every thread; the second only where the first's family
@@ -1064,6 +1067,12 @@ def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict
     chosen = _configured_selection(template, candidates, scores, cfg, verdicts, hold).metadata["selection"]
     name = chosen["chosen"]
     return _refinement_family(name) == "" and chosen["inconsistent_rest_points"][name] == 0
+
+
+def _both_starts(cfg: IdentConfig) -> bool:
+    """Whether both refinement starts run side by side (``IdentConfig.refine_starts``: "both", or
+    "auto" where torch has a second thread for the second start)."""
+    return cfg.refine_starts == "both" or (cfg.refine_starts == "auto" and _threads_for(2) >= 2)
 
 
 def _threads_for(jobs: int) -> int:
