@@ -1,5 +1,6 @@
 """Identification engine: configuration, backbone, baselines, the PISML pipeline on a small problem,
 metrics, and the `pisml identify` / `simulate --model` / `analyse --model` commands."""
+import contextlib
 import json
 import math
 
@@ -22,6 +23,19 @@ from pisml_ros.signals import INPUT_NAMES, SCORED_STATES, STATE_NAMES
 FAST = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
         "refine_growing_evaluations": "2,2,2", "refine_polish_evaluations": "2,2",
         "distill_max_terms": 2}
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    """torch's intra-op thread count set to ``n`` inside the block, restored after it."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -450,35 +464,23 @@ def test_noisy_measured_inputs_are_held_at_their_means_where_they_are_constant(t
 
 
 def test_both_refinement_starts_run_where_torch_has_a_second_thread():
-    import torch
-
     from pisml_ros.ident.estimators import _both_starts
 
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
+    with torch_threads(1):
         assert not _both_starts(IdentConfig()) and _both_starts(IdentConfig.from_mapping({"refine_starts": "both"}))
-        torch.set_num_threads(2)
+    with torch_threads(2):
         assert _both_starts(IdentConfig()) and IdentConfig().refine_starts == "auto"
         assert not _both_starts(IdentConfig.from_mapping({"refine_starts": "fallback"}))
-    finally:
-        torch.set_num_threads(threads)
 
 
 def test_a_fit_on_noisy_inputs_holds_them_and_says_so(train, small):
-    import torch
-
     from pisml_ros.ident import selection_warnings
     from pisml_ros.plant.noise import add_measurement_noise
 
     noisy_train = add_measurement_noise(train, 40.0, seed=6, include_inputs=True)
     noisy_small = add_measurement_noise(small, 40.0, seed=7, include_inputs=True)
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(2)
+    with torch_threads(2):
         est = make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(noisy_train, noisy_small)
-    finally:
-        torch.set_num_threads(threads)
     # the default on two threads: the second start's family refined side by side, scored and competing
     second = est.explicit_model_.metadata["refinement_second_start"]
     assert second["run"] and second["side_by_side"] and est.metrics_["refinement_threads"] == 2.0
@@ -947,8 +949,6 @@ def test_refinement_shares_its_windows_out_in_at_most_two_parts(monkeypatch):
     # 16-core machine: 0.85 / 0.76 / 2.9 / 6.1 s per evaluation in 1 / 2 / 8 / 16 parts)
     import threading
 
-    import torch
-
     from pisml_ros.ident import IdentConfig
     from pisml_ros.ident.estimators import refine_explicit
     from pisml_ros.ident.trajfit import SHOOTING_PARTS_MAX
@@ -964,12 +964,8 @@ def test_refinement_shares_its_windows_out_in_at_most_two_parts(monkeypatch):
     def progress(fraction, losses):
         seen.append(sum(t.name.startswith("pisml-shoot") for t in threading.enumerate()))
 
-    threads = torch.get_num_threads()
-    torch.set_num_threads(6)
-    try:
+    with torch_threads(6):
         refine_explicit(model, train, None, cfg, progress=progress)
-    finally:
-        torch.set_num_threads(threads)
     assert seen and 0 < max(seen) <= SHOOTING_PARTS_MAX == 2, seen
 
 
