@@ -806,10 +806,12 @@ class PISML(_Estimator):
                     "refinement", 0.7 + share * fraction, losses=losses))
                 for k, outcome in enumerate(outcomes):
                     add(k, *outcome)
+                threads = _threads_for(len(starts))
                 if len(starts) > 1:
+                    # (on one thread, where the gradients are not thread-safe, the two ran one after the other)
                     explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": True,
-                                                                    "side_by_side": True}
-                self.metrics_["refinement_threads"] = float(_threads_for(len(starts)))
+                                                                    "side_by_side": threads > 1}
+                self.metrics_["refinement_threads"] = float(threads)
             else:
                 # the first start alone on every thread; the second only where the first's family
                 # does not give a model consistent with the records' rest points (IdentConfig.refine_starts)
