@@ -1793,6 +1793,50 @@ def test_refinements_run_side_by_side_report_from_the_caller_and_stop_together()
     assert stopped == ["_StoppedBeside", "_StoppedBeside"]
 
 
+def test_side_by_side_runs_after_on_the_first_thread_a_job_leaves():
+    import threading
+    import time
+
+    from pisml_ros.ident.estimators import _Deferred, _side_by_side
+
+    caller = threading.current_thread()
+    ended = {}
+
+    def job(item, progress):
+        time.sleep(item)
+        progress(1.0, {})
+        ended[item] = time.monotonic()
+        return item
+
+    def after():
+        ended["after_thread"] = threading.current_thread()
+        ended["after_start"] = time.monotonic()
+        time.sleep(0.2)
+        ended["after_end"] = time.monotonic()
+
+    assert _side_by_side(job, [0.1, 0.8], lambda fraction, losses: None, workers=2, after=after) == [0.1, 0.8]
+    # it started when the short job ended, ran beside the long one, and had ended by the return
+    assert ended["after_thread"] is not caller
+    assert ended[0.1] <= ended["after_start"] and ended["after_end"] < ended[0.8]
+    # one after the other: after the jobs, on the caller's thread
+    ended.clear()
+    assert _side_by_side(job, [0.1, 0.2], lambda fraction, losses: None, workers=1, after=after) == [0.1, 0.2]
+    assert ended["after_thread"] is caller and ended["after_start"] >= ended[0.2]
+
+    # a deferred computation runs once, where it is run or first asked for, and raises where asked
+    calls = []
+    deferred = _Deferred(lambda: calls.append(1) or len(calls))
+    deferred.run()
+    assert deferred.value() == 1 and deferred.value() == 1 and calls == [1]
+
+    def breaks():
+        raise np.linalg.LinAlgError("singular")
+
+    failing = _Deferred(breaks)
+    failing.run()  # kept, not raised on the thread that ran it
+    with pytest.raises(np.linalg.LinAlgError, match="singular"):
+        failing.value()
+
 def test_rivals_are_the_eligible_candidates_near_the_best_score():
     from pisml_ros.ident.estimators import rival_names
 

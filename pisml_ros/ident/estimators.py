@@ -29,6 +29,7 @@ from .backbone import fit_backbone, reference_points
 from .config import IdentConfig
 from .library import (centred_terms, coupling_separation, extended_library, filter_row_mask, integrator_row_mask,
                       monomial_basis, physics_library, rebased, term_degrees)
+from .limiter import fit_reference_limit
 from .noise import input_noise_std, piecewise_constant_inputs
 from .roles import SignalRoles
 from .trajfit import SHOOTING_PARTS_MAX, blas_threads
@@ -783,6 +784,10 @@ class PISML(_Estimator):
                 refined = refine_explicit(begin, train, smallsignal, config or cfg, progress,
                                           start_error=scores[start], errors=errors, scoring=scoring,
                                           growing=growing)
+                # scored here, on the refinement's own thread: where two run side by side, the first
+                # to end scores its models while the other still runs
+                errors.update(training_errors({name: model for name, model in refined.items() if name not in errors},
+                                              scoring))
                 return refined, errors
 
             def add(k, refined, errors, suffix=None, start=None):
@@ -791,9 +796,7 @@ class PISML(_Estimator):
                 for name, model in refined.items():
                     model.metadata["refinement"]["start"] = start or starts[k]
                     candidates[name + suffix] = model
-                scores.update({name + suffix: error for name, error in errors.items()})
-                unscored = {name: model for name, model in refined.items() if name + suffix not in scores}
-                scores.update({name + suffix: error for name, error in training_errors(unscored, scoring).items()})
+                scores.update({name + suffix: error for name, error in errors.items()})  # refine_from scored all
 
             # the windows of one start are shared out over the threads only where its terms'
             # gradients are thread-safe (TermSet.thread_safe_gradient): else the two starts side by
@@ -801,9 +804,13 @@ class PISML(_Estimator):
             shared = term_set(candidates[starts[0]].terms, signals).thread_safe_gradient()
             # on clean data the second half of the refinement's progress is kept for the fallback below
             share = 0.28 if noisy or not cfg.refine_growing_windows else 0.14
+            # the limit search needs the records alone: it runs on the first thread a refinement leaves
+            limit_search = _Deferred(lambda: fit_reference_limit(train, cfg.roles, span=cfg.limiter_span)) \
+                if cfg.limiter_search else None
             if _both_starts(cfg) or len(starts) == 1 or not shared:
                 outcomes = _side_by_side(refine_from, starts, lambda fraction, losses: self._emit(
-                    "refinement", 0.7 + share * fraction, losses=losses))
+                    "refinement", 0.7 + share * fraction, losses=losses),
+                    after=limit_search.run if limit_search is not None else None)
                 for k, outcome in enumerate(outcomes):
                     add(k, *outcome)
                 threads = _threads_for(len(starts))
@@ -833,7 +840,7 @@ class PISML(_Estimator):
             if cfg.limiter_search:
                 try:
                     self._limiter_family(explicit, candidates, scores, verdicts, hold, noise_floor, library, train,
-                                         scoring, refine_from, add)
+                                         scoring, refine_from, add, limit_search)
                 except (ValueError, np.linalg.LinAlgError) as err:
                     # a search that breaks down numerically costs its candidates, not the fit
                     explicit.metadata.setdefault("limiter", {})["error"] = f"{type(err).__name__}: {err}"
@@ -920,10 +927,11 @@ class PISML(_Estimator):
             self.metrics_["refinement_starts_run"] = 2.0
 
     def _limiter_family(self, explicit, candidates, scores, verdicts, hold, floor, library, train, scoring,
-                        refine_from, add):
+                        refine_from, add, limit_search: _Deferred):
         """The records may hold a saturation no library term has: a limit of a dq reference (its
-        magnitude, or each axis) is fitted to them (:func:`~.limiter.fit_reference_limit`; every fit
-        since stop 56, 2–9 s on 2 cores, so that a limit acting in the records is reported,
+        magnitude, or each axis) is fitted to them (``limit_search``, a :class:`_Deferred`
+        :func:`~.limiter.fit_reference_limit` that ran beside the refinement where a thread came free;
+        every fit since stop 56, 2–9 s on 2 cores, so that a limit acting in the records is reported,
         :func:`~.limiter.limit_note`, even where the model does without it). Where one is found
         and the model the selection would take reproduces the records far worse than their noise
         explains (the selection's caution: ``selection_warn_noise_ratio`` × ``floor`` +
@@ -944,18 +952,16 @@ class PISML(_Estimator):
         search finds no limit in any of the 41 record sets of stop 56's check (protocol recordings
         0–9 at 40 dB, clean, 20 and 30 dB; the other inverters; the scenarios at 40 dB).
         """
-        from .limiter import fit_reference_limit
-
         cfg = self.config
         chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold)
         threshold = cfg.selection_warn_noise_ratio * floor + cfg.selection_warn_noise_margin
         record = {"selected_before": chosen, "error_pct": scores[chosen], "threshold_pct": threshold,
                   "run": True, "family": bool(scores[chosen] > threshold)}
         explicit.metadata["limiter"] = record
-        started = time.monotonic()
-        limit = fit_reference_limit(train, cfg.roles, span=cfg.limiter_span)
+        limit = limit_search.value()  # (run beside the refinement where a thread came free)
+        started = time.monotonic() - limit_search.seconds  # (the family's seconds include the search's)
         record["found"] = limit is not None
-        record["fit_seconds"] = time.monotonic() - started
+        record["fit_seconds"] = limit_search.seconds
         self.metrics_["limiter_search"] = 1.0
         self.metrics_["limiter_seconds"] = record["fit_seconds"]
         if limit is None:
@@ -1088,13 +1094,16 @@ def _threads_for(jobs: int) -> int:
 
 
 def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], None],
-                  workers: int | None = None) -> list:
+                  workers: int | None = None, after: Callable[[], None] | None = None) -> list:
     """``[job(item, progress) for item in items]``, the jobs in threads side by side where torch has
     threads to share out (:func:`_threads_for`), else one after the other.
 
     ``progress(fraction, losses)`` is each job's own; ``report(fraction, losses)`` gets the jobs'
     mean fraction, from the calling thread only (the callers' callbacks are not thread-safe);
-    ``workers`` overrides how many run at once. An exception from ``report`` (cancellation) or
+    ``workers`` overrides how many run at once. ``after()``, if given, runs on the first thread a
+    job leaves free (after the jobs where they run one after the other), and has run when this
+    returns: work of the caller's that needs no job's result (:class:`_Deferred`), done while the
+    last job still runs, not after it on one core. An exception from ``report`` (cancellation) or
     from a job stops the other jobs at their next progress call and is raised here. Threads, not
     processes: most of the work is in torch calls that release the GIL (scipy's BLAS ``dsyrk`` in
     the normal equations holds it), and the jobs share the data. Measured on the 40 dB benchmark
@@ -1108,8 +1117,11 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
 
     workers = _threads_for(len(items)) if workers is None else max(1, min(workers, len(items)))
     if workers == 1:
-        return [job(item, lambda fraction, losses, k=k: report((k + fraction) / len(items), losses))
-                for k, item in enumerate(items)]
+        results = [job(item, lambda fraction, losses, k=k: report((k + fraction) / len(items), losses))
+                   for k, item in enumerate(items)]
+        if after is not None:
+            after()
+        return results
     fractions = [0.0] * len(items)
     latest: dict = {}
     lock = threading.Lock()
@@ -1132,6 +1144,9 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
     try:
         with blas_threads(max(1, threads // workers)), ThreadPoolExecutor(workers, "pisml-refine") as pool:
             futures = [pool.submit(run, k, item) for k, item in enumerate(items)]
+            if after is not None:
+                # queued behind the jobs: it starts on the first thread one of them leaves
+                futures.append(pool.submit(after))
             try:
                 reported = -1.0
                 while True:
@@ -1145,11 +1160,45 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
                         report(fraction, losses)  # may raise: cancelled
                         reported = fraction
                     if not pending:
-                        return [f.result() for f in futures]
+                        return [f.result() for f in futures[:len(items)]]
             finally:
                 stop.set()  # the jobs still running end at their next progress call
     finally:
         torch.set_num_threads(threads)
+
+
+class _Deferred:
+    """A computation run once: where a thread comes free (:func:`_side_by_side`'s ``after``), or
+    else when its value is first asked for. An exception it raises is kept and raised again to
+    whoever asks for the value, as where the computation had run there; ``seconds`` is its own
+    duration."""
+
+    def __init__(self, compute: Callable[[], object]):
+        import threading
+
+        self._compute = compute
+        self._lock = threading.Lock()
+        self._done = False
+        self._value = self._error = None
+        self.seconds = 0.0
+
+    def run(self) -> None:
+        with self._lock:
+            if self._done:
+                return
+            started = time.monotonic()
+            try:
+                self._value = self._compute()
+            except Exception as err:  # raised again by value(), where the caller handles it
+                self._error = err
+            self.seconds = time.monotonic() - started
+            self._done = True
+
+    def value(self):
+        self.run()
+        if self._error is not None:
+            raise self._error
+        return self._value
 
 
 class _StoppedBeside(Exception):
