@@ -539,6 +539,23 @@ def test_a_replay_keeps_what_came_before_a_divergence_and_a_fits_batch_does_not(
     assert np.all(np.isnan(batch))
 
 
+
+def test_records_of_different_lengths_run_in_one_pass_as_each_would_alone():
+    from pisml_ros.integrate import simulate_many
+
+    model = ExplicitModel(["x"], ["ug", "theta_g"], ["x", "ug", "x**2"], [[-3.0], [2.0], [0.1]])
+    rng = np.random.default_rng(1)
+    inputs = [rng.uniform(0.5, 1.5, size=(n, 2)) for n in (7, 20, 13)]
+    starts = [np.array([0.1]), np.array([0.4]), np.array([-0.2])]
+    for got, start, u in zip(simulate_many(model, starts, inputs, 1e-2), starts, inputs):
+        [alone] = simulate_many(model, [start], [u], 1e-2)
+        assert got.shape == (len(u), 1) and np.array_equal(got, alone)
+    # dx/dt = x^2 from 1 blows up at t = 1: a record that ends before it is whole, though the
+    # longer record it runs beside holds its last input on past the blow-up
+    growing = ExplicitModel(["x"], ["ug", "theta_g"], ["x**2"], [[1.0]])
+    short, long_ = simulate_many(growing, [np.ones(1), np.full(1, 0.01)], [np.ones((5, 2)), np.ones((20, 2))], 0.1)
+    assert short.shape == (5, 1) and np.all(np.isfinite(short)) and np.all(np.isfinite(long_))
+
 def test_the_alternatives_rebuild_from_the_json_and_say_whether_the_verdict_is_open(tmp_path, truth):
     from pisml_ros.analysis.operating_point import alternatives_note, operating_point_report
     from pisml_ros.ident.estimators import alternative_entry
@@ -571,6 +588,16 @@ def test_the_alternatives_rebuild_from_the_json_and_say_whether_the_verdict_is_o
     assert report["stable"] and "metadata.alternatives[0]" in report["alternatives"]["error"]
     assert alternatives_note(report["alternatives"]).startswith("the model's alternatives could not be read")
 
+
+
+def test_max_real_near_is_one_alternative_verdict_and_none_without_an_equilibrium():
+    from pisml_ros.analysis.operating_point import max_real_near
+
+    decaying = ExplicitModel(["x"], ["ug", "theta_g"], ["x", "ug"], [[-2.0], [1.0]])
+    assert max_real_near(decaying, np.zeros(1), (0.8, 0.0)) == pytest.approx(-2.0)
+    # dx/dt = 1 + x^2 has no real equilibrium: no verdict, not an error
+    nowhere = ExplicitModel(["x"], ["ug", "theta_g"], ["1", "x**2"], [[1.0], [1.0]])
+    assert max_real_near(nowhere, np.zeros(1), (0.8, 0.0)) is None
 
 def _sample(model):
     rng = np.random.default_rng(0)

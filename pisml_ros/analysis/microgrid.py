@@ -560,8 +560,9 @@ class Microgrid:
         unit's records about as well) in that unit's place, one at a time, at the operating point
         followed from ``x``: ``[{"unit", "name", "max_real"}]`` (None: no operating point there).
         For :func:`~pisml_ros.analysis.operating_point.alternative_verdicts`."""
+        from .operating_point import max_real_near
+
         x = np.asarray(x, dtype=float)
-        u = np.asarray(u, dtype=float)
         out = []
         for unit in self.units:
             alternatives = getattr(unit.system, "alternatives", None)
@@ -571,10 +572,7 @@ class Microgrid:
             for name, model in alternatives(unit.name):
                 try:
                     unit.system = model
-                    y = self.equilibrium(float(u[0]), float(u[1]), x0=x)
-                    value = float(np.linalg.eigvals(self.jacobian(y, u)).real.max())
-                except (EquilibriumNotFound, ValueError, np.linalg.LinAlgError):
-                    value = None
+                    value = max_real_near(self, x, u)
                 finally:
                     unit.system = own
                 out.append({"unit": unit.name, "name": name, "max_real": value})

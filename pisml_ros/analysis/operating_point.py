@@ -73,7 +73,6 @@ def alternative_verdicts(system, x, inputs, max_real: float) -> dict | None:
     the noise alone, for one set of terms. None where the system carries no alternatives (the
     plant, baselines, models identified before stop 62). Where an entry cannot be rebuilt, the
     dict says so (``"error"``) and the rest of the report stands."""
-    from ..equilibrium import EquilibriumNotFound
     from ..model import ModelFormatError
 
     u = np.asarray(inputs, dtype=float)
@@ -85,14 +84,7 @@ def alternative_verdicts(system, x, inputs, max_real: float) -> dict | None:
         if callable(assembled):
             found = assembled(x, u)
         else:
-            found = []
-            for name, model in alternatives():
-                try:
-                    y = model.equilibrium(*u, x0=x)
-                    value = float(np.linalg.eigvals(model.jacobian(y, u)).real.max())
-                except (EquilibriumNotFound, ValueError, np.linalg.LinAlgError):
-                    value = None
-                found.append({"name": name, "max_real": value})
+            found = [{"name": name, "max_real": max_real_near(model, x, u)} for name, model in alternatives()]
     except ModelFormatError as err:  # a damaged entry costs the alternatives, not the report
         return {"candidates": [], "agree": False, "max_real_range": [max_real, max_real], "error": str(err)}
     if not found:
@@ -101,6 +93,21 @@ def alternative_verdicts(system, x, inputs, max_real: float) -> dict | None:
     return {"candidates": found, "agree": not any(verdict_differs(max_real, item["max_real"]) for item in found),
             "max_real_range": [min(values + [max_real]), max(values + [max_real])],
             "basis": "the fit's candidates within the selection's tolerance of the best training error"}
+
+
+def max_real_near(system, x0, inputs) -> float | None:
+    """The largest real part of ``system``'s eigenvalues at its equilibrium for ``inputs`` (ug,
+    theta_g) found from ``x0`` (another model's operating point, followed), or None where none is
+    found there: one alternative's verdict (:func:`alternative_verdicts`,
+    :meth:`~pisml_ros.analysis.microgrid.Microgrid.alternative_max_reals`)."""
+    from ..equilibrium import EquilibriumNotFound
+
+    u = np.asarray(inputs, dtype=float)
+    try:
+        y = system.equilibrium(*(float(v) for v in u), x0=x0)
+        return float(np.linalg.eigvals(system.jacobian(y, u)).real.max())
+    except (EquilibriumNotFound, ValueError, np.linalg.LinAlgError):
+        return None
 
 
 def verdict_differs(max_real: float | None, other: float | None) -> bool:

@@ -72,6 +72,10 @@ class ExplicitModel:
     def _stack(self, x, u):
         x = np.asarray(x, dtype=float)
         u = np.asarray(u, dtype=float)
+        if x.shape[:-1] == u.shape[:-1]:
+            # a free run's case, some hundred thousand calls a fit: the broadcasting below cost 8.5 µs
+            # a call against 1.8 µs (24 rows, the same array)
+            return np.concatenate([x, u], axis=-1)
         lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
         return np.concatenate([np.broadcast_to(x, lead + x.shape[-1:]), np.broadcast_to(u, lead + u.shape[-1:])],
                               axis=-1)
