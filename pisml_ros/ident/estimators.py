@@ -1565,8 +1565,9 @@ class _Stacked:
     def simulate(self, dataset: Dataset) -> Dataset:
         from ..model.replay import replay
 
-        # model-major copies of the records: simulate_many groups equal lengths in list order, so
-        # every vector-field call sees K equal blocks of rows
+        # model-major copies of the records: simulate_many's RK4 runs them all in one pass in list
+        # order (the shorter ones held to the longest's length), so every vector-field call sees K
+        # equal blocks of rows
         repeated = Dataset(dataset.state_names, dataset.input_names, list(dataset) * len(self.models), dataset.metadata)
         return replay(self, repeated)
 
