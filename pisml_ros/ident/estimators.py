@@ -959,7 +959,7 @@ class PISML(_Estimator):
                   "run": True, "family": bool(scores[chosen] > threshold)}
         explicit.metadata["limiter"] = record
         limit = limit_search.value()  # (run beside the refinement where a thread came free)
-        started = time.monotonic() - limit_search.seconds  # (the family's seconds include the search's)
+        started = time.monotonic()
         record["found"] = limit is not None
         record["fit_seconds"] = limit_search.seconds
         self.metrics_["limiter_search"] = 1.0
@@ -999,7 +999,7 @@ class PISML(_Estimator):
         record["added"] = sorted(set(candidates) - before)
         chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold, noise_floor=floor)
         record["selected_after"] = chosen
-        record["seconds"] = time.monotonic() - started
+        record["seconds"] = limit_search.seconds + (time.monotonic() - started)  # the search and the family
         self.metrics_["limiter_seconds"] = record["seconds"]
 
     def _progress_on(self):
