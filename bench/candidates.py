@@ -9,7 +9,7 @@ modes over ug 0.2-1.1, and the largest real part at the records' rest points. It
 behind the measured notes in ``pisml_ros/ident/config.py`` (stop 40; scratch ``jc.py`` before).
 
     .venv/bin/python bench/candidates.py --scenario protocol --seed 3 --noise 40 \
-        [--set KEY=VALUE ...] [--out candidates.json]
+        [--plant saturation] [--set KEY=VALUE ...] [--out candidates.json]
 
 ``--out`` writes every candidate as an explicit model JSON (name -> model dict) and the rows.
 """
@@ -48,7 +48,7 @@ def state_errors(model, test, t_split: float = 0.02) -> dict:
 
 
 def main(argv=None) -> int:
-    from bench import (add_settings_option, finite, make_estimator, plant_grid, settings_or_exit, spectra,
+    from bench import (PLANTS, add_settings_option, finite, make_estimator, plant_grid, settings_or_exit, spectra,
                        spurious_points)
     from scenarios_bench import SCENARIOS, scenario_datasets
 
@@ -59,6 +59,8 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="protocol", help=f"one of {sorted(SCENARIOS)}")
+    parser.add_argument("--plant", default="standard",
+                        help=f"one of {sorted(PLANTS)} (bench.py's; the saturation plant: a current limit)")
     parser.add_argument("--seed", type=int, default=0, help="recording (scenario and noise seed)")
     parser.add_argument("--noise", default="40", help="'clean' or an SNR in dB")
     add_settings_option(parser)
@@ -66,10 +68,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.scenario not in SCENARIOS:
         parser.error(f"--scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
+    if args.plant not in PLANTS:
+        parser.error(f"--plant {args.plant!r}: not one of {sorted(PLANTS)}")
     settings = settings_or_exit(args.set, parser)  # as `pisml identify --set`
     snr = None if args.noise == "clean" else float(args.noise)
 
-    plant, train, small, test = scenario_datasets(SCENARIOS[args.scenario], snr, args.seed)
+    plant, train, small, test = scenario_datasets(SCENARIOS[args.scenario], snr, args.seed, PLANTS[args.plant])
     grid = plant_grid(plant)
     truth = {g: plant.eigenvalues(g, 0.0) for g in grid}
     started = time.monotonic()
@@ -112,9 +116,10 @@ def main(argv=None) -> int:
               f"IOD worst {max(states['iod'], key=states['iod'].get) if states else '—'} "
               f"rest max Re {np.round(row['rest_max_real'], 2) if rest_max else '—'}", flush=True)
     if args.out:
-        Path(args.out).write_text(json.dumps({"scenario": args.scenario, "seed": args.seed, "noise": args.noise,
-                                              "settings": settings, "chosen": selection["chosen"],
-                                              "rows": rows, "models": models}, indent=1))
+        Path(args.out).write_text(json.dumps({"scenario": args.scenario, "plant": args.plant, "seed": args.seed,
+                                              "noise": args.noise, "settings": settings,
+                                              "chosen": selection["chosen"], "rows": rows, "models": models},
+                                             indent=1))
     return 0
 
 

@@ -46,11 +46,12 @@ SCENARIOS = {
 }
 
 
-def scenario_datasets(spec: dict, snr: float | None, seed: int):
-    """The plant and the training, small-signal and test records of one scenario (bench.datasets)."""
+def scenario_datasets(spec: dict, snr: float | None, seed: int, effects: dict | None = None):
+    """The plant (with ``effects``, bench.PLANTS', none by default) and the training, small-signal
+    and test records of one scenario (bench.datasets)."""
     from bench import datasets
 
-    return datasets({}, snr, seed=seed, **spec)
+    return datasets(effects or {}, snr, seed=seed, **spec)
 
 
 def main(argv=None) -> int:

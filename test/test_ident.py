@@ -1672,6 +1672,43 @@ def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_
     assert not any(name.endswith(" unrestricted") for name in kept.candidates_)
 
 
+def test_noisy_fit_whose_choice_is_inconsistent_with_the_rest_points_runs_the_rescue(train, small, monkeypatch):
+    # stop 65, the scenarios' 5 kHz recording 0 at 40 dB: every candidate of the first refinement was
+    # inconsistent with all 9 rest points, the chosen one scored 2.2x the noise floor (below the
+    # rescue's ratio), and no second try ran. Here every candidate outside the rescue's family is
+    # inconsistent with the rest points, at a ratio the rescue never reaches by itself
+    from pisml_ros.ident import estimators
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    real = estimators._inconsistent_points
+
+    def inconsistent_but_the_rescue(name, candidates, points, *args, **kwargs):
+        count = real(name, candidates, points, *args, **kwargs)
+        return count if name.endswith(" with growing prior") else max(count, 1)
+
+    monkeypatch.setattr(estimators, "_inconsistent_points", inconsistent_but_the_rescue)
+    cfg = IdentConfig.from_mapping({**FAST, "refine_rescue_ratio": 1e9, "filter_terms": "physics"})
+    est = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
+                                           add_measurement_noise(small, 40.0, seed=2))
+    meta = est.explicit_model_.metadata
+    rescue = meta["refinement_rescue"]
+    assert rescue["ratio"] < cfg.refine_rescue_ratio and rescue["inconsistent_rest_points"] >= 1
+    assert rescue["run"] and "refined with growing prior" in est.candidates_
+    assert set(rescue["added"]) <= set(meta["selection"]["training_error_pct"])
+    # the unrestricted fallback asks the same of the model the selection takes after the rescue
+    fallback = meta["refinement_unrestricted"]
+    assert fallback["ratio"] < cfg.refine_rescue_ratio
+    assert fallback["run"] == (fallback["inconsistent_rest_points"] > 0 or fallback["refinement_lost"])
+    # consistent choices below the ratio: neither runs
+    monkeypatch.setattr(estimators, "_inconsistent_points", lambda *args, **kwargs: 0)
+    kept = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
+                                            add_measurement_noise(small, 40.0, seed=2))
+    meta = kept.explicit_model_.metadata
+    assert not meta["refinement_rescue"]["run"] and meta["refinement_rescue"]["inconsistent_rest_points"] == 0
+    assert not meta["refinement_unrestricted"]["run"] or meta["refinement_unrestricted"]["refinement_lost"]
+    assert not any(name.endswith(" with growing prior") for name in kept.candidates_)
+
+
 def test_centred_couplings_are_the_same_field_and_make_the_plain_signal_costly_to_drop(train):
     from pisml_ros.ident.estimators import _couplings_centred, frequency_centre
     from pisml_ros.ident.library import centred_terms, rebased

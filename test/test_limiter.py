@@ -173,7 +173,7 @@ def test_a_current_limit_is_found_in_the_records_where_it_acts_and_nowhere_else(
 
 
 @pytest.mark.slow
-def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduces_the_saturated_tests():
+def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduces_the_saturated_tests(monkeypatch):
     # the magnitude limit (the engine's path does not depend on the kind; make bench-limits runs PISML on
     # the clamp too: 0.0227 / 0.142 % IOD / OOD clean, recording 0)
     import json
@@ -187,11 +187,25 @@ def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduc
     test = generate(plant, evaluation_schedules(0.04), 0.04)
     fast = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
             "distill_max_terms": 2}
+    from pisml_ros.ident import estimators
+
+    real, refined = estimators.refine_explicit, set()
+
+    def recorded(model, train, smallsignal, cfg, *args, **kwargs):
+        refined.add((any("Min(" in term for term in model.terms), cfg.refine_rest_weight))
+        return real(model, train, smallsignal, cfg, *args, **kwargs)
+
+    monkeypatch.setattr(estimators, "refine_explicit", recorded)
     model = make_estimator("pisml", IdentConfig.from_mapping(fast)).fit(records, small).explicit_model_
     record = model.metadata["limiter"]
     assert record["run"] and record["found"]
     assert record["limit"]["kind"] == "magnitude" and record["limit"]["limit"] == pytest.approx([IMAX], rel=2e-3)
     assert "with limit" in model.metadata["selection"]["chosen"]
+    # the family's polish holds its models' equilibria to the records' rest states
+    # (IdentConfig.limiter_rest_weight); the fit's other families keep refine_rest_weight
+    config = IdentConfig()
+    assert refined == {(False, config.refine_rest_weight), (True, config.limiter_rest_weight)}
+    assert config.limiter_rest_weight > 0 == config.refine_rest_weight
     assert limit_note(model).startswith("a magnitude limit found in the records: gamma_d/gamma_q integrate a "
                                         "reference limited to 2.2") and limit_note(model).endswith("the model uses it")
     assert not any("far worse" in warning for warning in model.metadata["selection"]["warnings"])
