@@ -954,7 +954,9 @@ class PISML(_Estimator):
         10.2 / 62.5 % IOD / OOD to 0.0224 / 0.093 % (the re-fit with the limit won), 40 dB from
         5.23 / 62.9 % to 1.48 / 5.46 % (the refinement from ``chosen plus limit``); with the plant's
         own reference and limit instead of the fitted ones the refinement reaches 0.36 / 1.07 %
-        (scratch). Stop 55, `make bench-limits`, a per-axis clamp (±1.6 / ±2.4 p.u.): clean 0.0227 /
+        (scratch). From stop 56 the 40 dB row was back at 5.23 / 62.9 %: the family's models sat
+        their equilibria 1.7–3.2 p.u. from the records' rest states, inconsistent with all 9, and
+        lost; with the polish's rest prior (``limiter_rest_weight``, stop 65) 1.57 / 3.24 %. Stop 55, `make bench-limits`, a per-axis clamp (±1.6 / ±2.4 p.u.): clean 0.0227 /
         0.142 % (recording 0; 0.84 / 40.0 % with the magnitude limit only), 40 dB found but not chosen
         (1.26 / 49.3 %). On the default plant no fit is above the caution's threshold, and the
         search finds no limit in any of the 41 record sets of stop 56's check (protocol recordings
