@@ -956,8 +956,9 @@ class PISML(_Estimator):
         own reference and limit instead of the fitted ones the refinement reaches 0.36 / 1.07 %
         (scratch). From stop 56 the 40 dB row was back at 5.23 / 62.9 %: the family's models sat
         their equilibria 1.7–3.2 p.u. from the records' rest states, inconsistent with all 9, and
-        lost; with the polish's rest prior (``limiter_rest_weight``, stop 65) 1.57 / 3.24 %. Stop 55, `make bench-limits`, a per-axis clamp (±1.6 / ±2.4 p.u.): clean 0.0227 /
-        0.142 % (recording 0; 0.84 / 40.0 % with the magnitude limit only), 40 dB found but not chosen
+        lost; with the polish's rest prior (``limiter_rest_weight``, stop 65) 1.57 / 3.24 %.
+        Stop 55, `make bench-limits`, a per-axis clamp (±1.6 / ±2.4 p.u.): clean 0.0227 / 0.142 %
+        (recording 0; 0.84 / 40.0 % with the magnitude limit only), 40 dB found but not chosen
         (1.26 / 49.3 %). On the default plant no fit is above the caution's threshold, and the
         search finds no limit in any of the 41 record sets of stop 56's check (protocol recordings
         0–9 at 40 dB, clean, 20 and 30 dB; the other inverters; the scenarios at 40 dB).
@@ -1101,9 +1102,8 @@ def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict
     over the candidates so far takes one of its models, and that model is consistent with every
     operating point where the records sat at rest (an equilibrium there, no mode growing faster than
     ``cfg.selection_unstable_rate``, every mode decaying where the small-signal records sat)."""
-    chosen = _configured_selection(template, candidates, scores, cfg, verdicts, hold).metadata["selection"]
-    name = chosen["chosen"]
-    return _refinement_family(name) == "" and chosen["inconsistent_rest_points"][name] == 0
+    name, misfits = _would_choose_misfits(template, candidates, scores, cfg, verdicts, hold)
+    return _refinement_family(name) == "" and misfits == 0
 
 
 def _both_starts(cfg: IdentConfig) -> bool:
