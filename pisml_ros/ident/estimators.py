@@ -926,7 +926,7 @@ class PISML(_Estimator):
             add(0, *refine_from(starts[0], self._progress_on(), config=rescue), suffix=" with growing prior")
             record["added"] = sorted(set(candidates) - before)
             self.metrics_["refinement_rescue"] = 1.0
-            chosen, ratio, misfits = chosen_ratio()
+            ratio = chosen_ratio()[1]
             record["ratio_after"] = ratio
         second = explicit.metadata.get("refinement_second_start")
         if ratio > cfg.refine_rescue_ratio and second is not None and not second["run"] and len(starts) > 1:
