@@ -880,6 +880,15 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     assert np.all(pruned.coefficients[3] == 0) and np.all(pruned.coefficients[:3][truth != 0] != 0)
     np.testing.assert_allclose(pruned.coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
     assert progress and progress[-1] == pytest.approx(1.0) and all(np.diff(progress) >= 0)
+    # where the time went: a record per stage (bench/fit_time.py reads them)
+    stages = out["refined"].metadata["refinement"]["stages"]
+    assert [stage["window"] for stage in stages] == [10, 50] and stages[0]["support"] == np.count_nonzero(start)
+    for stage, budget in zip(stages, (10, 8)):
+        assert 0 <= stage["accepted"] < stage["evaluations"] <= budget and stage["seconds"] > 0
+    assert stages[-1]["cost"] == out["refined"].metadata["refinement"]["cost"]
+    polish = pruned.metadata["pruning"]["polish_stages"]
+    assert [stage["window"] for stage in polish] == [100]
+    assert polish[0]["support"] == np.count_nonzero(pruned.coefficients)
     # each candidate carries its coefficients' covariance for the noise (the analysis' verdict
     # uncertainty): over its own support, and the truth within a few of its standard deviations
     from pisml_ros.analysis.uncertainty import coefficient_covariance

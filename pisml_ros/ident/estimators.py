@@ -1755,7 +1755,9 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     order_weights = cfg.refine_prune_degree_preference ** -(degrees - 1.0)
     ridge_weight = _ridge_weight(train, cfg)
 
-    def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0):
+    def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0, log=None):
+        """The trajectory fits of ``schedule`` one after the other; ``log`` gets a record per stage
+        (window, support, evaluations, accepted steps, wall seconds, cost): where a fit's time goes."""
         result = None
         for stage, (window, evaluations) in enumerate(schedule):
             if stage and stage_budget > 0 and result is not None and result.hessian is not None:
@@ -1771,6 +1773,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                     progress(min((offset + nfev) / max(total, 1), 1.0),
                              {"refine_cost": cost, "refine_window": window, "nonzero": int(np.count_nonzero(coef))})
 
+            stage_started = time.monotonic()
             try:
                 result = fitter.fit(coef, coef != 0, train, smallsignal, lambda_jac=lambda_jac, max_nfev=evaluations,
                                     on_evaluation=on_evaluation, fit_starts_first=True,
@@ -1784,15 +1787,20 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                 break
             done[0] += evaluations
             used[0] += result.nfev
+            if log is not None:
+                log.append({"window": window, "support": int(np.count_nonzero(coef)), "evaluations": result.nfev,
+                            "accepted": result.accepted, "seconds": round(time.monotonic() - stage_started, 3),
+                            "cost": result.cost})
             coef = result.coefficients
         return result
 
     meta = dict(model.metadata)
     started = time.monotonic()
     pruned_between: list = []  # support sizes after each between-stage pruning
+    growing_log: list = []
     try:
         result = run(model.coefficients.copy(), stages, cfg.refine_growing_stability_weight,
-                     substeps=cfg.refine_growing_substeps, stage_budget=cfg.refine_stage_prune_budget)
+                     substeps=cfg.refine_growing_substeps, stage_budget=cfg.refine_stage_prune_budget, log=growing_log)
     except (np.linalg.LinAlgError, FloatingPointError) as err:
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
         return {}
@@ -1801,7 +1809,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     schedule = {"windows": [w for w, _ in stages], "evaluations": [n for _, n in stages],
                 "pruned_between": pruned_between, "stability_weight": cfg.refine_growing_stability_weight}
     meta["refinement"] = {"cost": result.cost, "nfev": used[0], "seconds": time.monotonic() - started,
-                          "abandoned": False, "growing_windows": schedule, "rk4_substeps": sorted(substeps_used or ())}
+                          "abandoned": False, "growing_windows": schedule, "rk4_substeps": sorted(substeps_used or ()),
+                          "stages": growing_log}
     out = {"refined": ExplicitModel(model.state_names, model.input_names, model.terms, result.coefficients,
                                     {**meta, **_with_covariance(result)})}
     if not cfg.refine_prune_budgets or result.hessian is None:
@@ -1825,9 +1834,10 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
             break  # nothing more to drop: another polish would re-fit the same support
         polish_started, polish_used = time.monotonic(), used[0]
         schedule = polish if round_ == 1 else repolish
+        polish_log: list = []
         try:
-            polished = run(coef, schedule, cfg.refine_stability_weight, rest_weight=cfg.refine_rest_weight) \
-                if schedule else None
+            polished = run(coef, schedule, cfg.refine_stability_weight, rest_weight=cfg.refine_rest_weight,
+                           log=polish_log) if schedule else None
         except (np.linalg.LinAlgError, FloatingPointError) as err:
             model.metadata.setdefault("refinement_errors", []).append(f"polish: {type(err).__name__}: {err}")
             polished = None
@@ -1837,7 +1847,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                    "polish_windows": [w for w, _ in schedule],
                    "polish_cost": None if polished is None else polished.cost,
                    "polish_evaluations": used[0] - polish_used, "polish_seconds": time.monotonic() - polish_started,
-                   "polish_rest_weight": cfg.refine_rest_weight, "rk4_substeps": sorted(substeps_used or ())}
+                   "polish_rest_weight": cfg.refine_rest_weight, "rk4_substeps": sorted(substeps_used or ()),
+                   "polish_stages": polish_log}
         # named by the nominal budget: the same names whatever the records' length
         name = _prune_round_name(f"{100 * cfg.refine_prune_budgets[0]:g}", round_)
         out[name] = ExplicitModel(model.state_names, model.input_names, model.terms,

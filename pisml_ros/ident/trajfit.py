@@ -121,6 +121,9 @@ class FitResult:
     nfev: int
     seconds: float
     abandoned: bool = False  # stopped early because ``keep_going`` said the fit was not improving
+    # steps taken: each costs a Gauss-Newton pass (the normal equations, ~10x a cost evaluation),
+    # a rejected trial step only its cost evaluation
+    accepted: int = 0
     # Gauss-Newton Hessian of the cost in the support coefficients (``support``: flat indices into the
     # coefficient matrix), the window start states profiled out; for pruning (:func:`backward_elimination`)
     hessian: np.ndarray | None = None
@@ -260,7 +263,7 @@ class TrajectoryFitter:
         z = torch.zeros((problem.n_windows, self.n_states))
         if fit_starts_first:
             z = problem.fit_starts(theta, z)
-        nfev = 0
+        nfev = accepted = 0
 
         def evaluate(th, zz):
             nonlocal nfev
@@ -287,9 +290,10 @@ class TrajectoryFitter:
                 mu *= max(0.1, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3)
                 nu = 2.0
                 theta, z, fall, cost = theta + step_theta, z + step_z, cost - trial, trial
+                accepted += 1
                 if keep_going is not None and not keep_going(problem.coefficients(theta)):
                     return FitResult(problem.coefficients(theta), cost, nfev, time.monotonic() - started,
-                                     abandoned=True)
+                                     abandoned=True, accepted=accepted)
                 normal = problem.normal_equations(theta, z)
                 if fall <= ftol * cost:
                     break
@@ -301,7 +305,7 @@ class TrajectoryFitter:
         hessian = problem.profiled_hessian(normal) if _finite(normal) else None
         # the priors' curvature is a plain sum in the normal equations: the data's is the rest
         data = hessian - problem.prior_hessian(normal) if hessian is not None else None
-        return FitResult(problem.coefficients(theta), cost, nfev, time.monotonic() - started,
+        return FitResult(problem.coefficients(theta), cost, nfev, time.monotonic() - started, accepted=accepted,
                          hessian=hessian if hessian is not None and np.all(np.isfinite(hessian)) else None,
                          support=problem.idx, window=problem.window,
                          data_hessian=data if data is not None and np.all(np.isfinite(data)) else None)

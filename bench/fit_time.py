@@ -1,0 +1,102 @@
+"""Where one PISML fit's time goes: the estimator's stage clocks and every trajectory-fit stage of
+its refinements, from the fit's own records (``metrics_`` and each candidate's metadata).
+
+The issue's speed target is a median over fits (<= 60 s on 2 cores); this is the tool for finding
+what a fit spends it on. Per refinement family (a start, the rescue, a fallback) it prints the
+growing-window stages (``metadata["refinement"]["stages"]``) and each prune round's polish
+(``metadata["pruning"]["polish_stages"]``): window, support, cost evaluations, accepted steps (each
+one Gauss-Newton pass, the expensive part), wall seconds and the cost reached. Stages of two
+families that ran side by side overlap in time; the process's CPU time over the fit's wall time says
+how busy the cores were.
+
+    .venv/bin/python bench/fit_time.py [--scenario protocol] [--plant standard] [--seed 1] \
+        [--noise 40] [--set KEY=VALUE ...] [--out fit_time.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parent
+sys.path[:0] = [str(BENCH), str(BENCH.parent)]
+
+
+def family_stages(candidates: dict) -> dict:
+    """``{family: [stage record, ...]}`` from the candidates' metadata: a family is a refinement's
+    candidates (``"refined"`` and its prune rounds, with the same name suffix); its stages are the
+    growing-window stages, then each round's polish, in the order they ran."""
+    families: dict = {}
+    for name, model in candidates.items():
+        meta = getattr(model, "metadata", {}) or {}
+        refinement, pruning = meta.get("refinement") or {}, meta.get("pruning") or {}
+        if name.startswith("refined") and refinement.get("stages"):
+            suffix = name[len("refined"):].strip()
+            families.setdefault(suffix, {})[0] = [dict(stage, part="growing") for stage in refinement["stages"]]
+        elif name.startswith("pruned") and pruning.get("polish_stages"):
+            # "pruned +0.1 % x2 from …": the suffix after the round's own name
+            rest = name.split(" %", 1)[1] if " %" in name else ""
+            rest = rest[3:] if rest.startswith(" x") and rest[2:3].isdigit() else rest
+            suffix = rest.strip()
+            families.setdefault(suffix, {})[pruning["round"]] = [
+                dict(stage, part=f"polish {pruning['round']}") for stage in pruning["polish_stages"]]
+    return {suffix or "first start": [s for _, stages in sorted(parts.items()) for s in stages]
+            for suffix, parts in families.items()}
+
+
+def format_stage(stage: dict) -> str:
+    return (f"  {stage['part']:10s} window {stage['window']:4d}  support {stage['support']:4d}  "
+            f"evaluations {stage['evaluations']:3d}  accepted {stage['accepted']:3d}  {stage['seconds']:6.2f} s  "
+            f"cost {stage['cost']:.6g}")
+
+
+def main(argv=None) -> int:
+    from bench import PLANTS, add_settings_option, settings_or_exit
+    from scenarios_bench import SCENARIOS, scenario_datasets
+
+    from pisml_ros.ident import IdentConfig, make_estimator
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", default="protocol", help=f"one of {sorted(SCENARIOS)}")
+    parser.add_argument("--plant", default="standard", help=f"one of {sorted(PLANTS)}")
+    parser.add_argument("--seed", type=int, default=1, help="recording (scenario and noise seed)")
+    parser.add_argument("--noise", default="40", help="'clean' or an SNR in dB")
+    add_settings_option(parser)
+    parser.add_argument("--out", help="JSON file for the clocks and the stage records")
+    args = parser.parse_args(argv)
+    if args.scenario not in SCENARIOS:
+        parser.error(f"--scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
+    if args.plant not in PLANTS:
+        parser.error(f"--plant {args.plant!r}: not one of {sorted(PLANTS)}")
+    settings = settings_or_exit(args.set, parser)
+    snr = None if args.noise == "clean" else float(args.noise)
+
+    _, train, small, _ = scenario_datasets(SCENARIOS[args.scenario], snr, args.seed, PLANTS[args.plant])
+    wall, cpu = time.monotonic(), time.process_time()
+    est = make_estimator("pisml", IdentConfig.load(None, settings)).fit(train, small)
+    wall, cpu = time.monotonic() - wall, time.process_time() - cpu
+    clocks = {key: round(value, 2) for key, value in est.metrics_.items() if key.endswith("seconds")}
+    print(f"{args.scenario} recording {args.seed}, {args.noise} dB, {args.plant} plant: {wall:.1f} s wall, "
+          f"{cpu:.1f} s CPU (cores {cpu / wall:.2f} busy on average); chosen "
+          f"{est.model_.metadata['selection']['chosen']!r}")
+    print("stage clocks (s): " + ", ".join(f"{key.removesuffix('_seconds')} {value}" for key, value in clocks.items()))
+    families = family_stages(est.candidates_)
+    for family, stages in families.items():
+        total = sum(stage["seconds"] for stage in stages)
+        passes = sum(stage["accepted"] for stage in stages)
+        print(f"{family}: {total:.1f} s in {len(stages)} stages, {passes} Gauss-Newton passes "
+              f"({sum(stage['evaluations'] for stage in stages)} cost evaluations)")
+        for stage in stages:
+            print(format_stage(stage))
+    if args.out:
+        Path(args.out).write_text(json.dumps({"scenario": args.scenario, "plant": args.plant, "seed": args.seed,
+                                              "noise": args.noise, "settings": settings, "wall_seconds": wall,
+                                              "cpu_seconds": cpu, "clocks": clocks, "families": families},
+                                             indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
