@@ -100,6 +100,10 @@ def test_trajectory_refinement_recovers_perturbed_coefficients(truth):
     fitter = TrajectoryFitter(model._terms, 13, data.dt, window=20, substeps=2, weights=weights)
     result = fitter.fit(start, model.coefficients != 0, data, lambda_jac=0.0, max_nfev=6)
     assert _replay_error(model, result.coefficients, data) < 0.1 * _replay_error(model, start, data)
+    assert 0 < result.accepted < result.nfev == 6  # the start's evaluation is no step
+    # a heavy damping to start from: the same budget hardly moves the coefficients
+    damped = fitter.fit(start, model.coefficients != 0, data, lambda_jac=0.0, max_nfev=6, damping=1e6)
+    assert _replay_error(model, damped.coefficients, data) > 0.5 * _replay_error(model, start, data)
     # the same problem gives the same coefficients, bit for bit (torch's CPU lstsq in the step did not:
     # a different solution on every call for the same matrix)
     again = fitter.fit(start, model.coefficients != 0, data, lambda_jac=0.0, max_nfev=6)

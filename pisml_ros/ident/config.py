@@ -290,6 +290,11 @@ class IdentConfig:
     refine_centred_couplings: bool = False
     refine_polish_windows: tuple = (50, 100)
     refine_polish_evaluations: tuple = (8, 6)
+    # Levenberg-Marquardt damping (relative to the normal equations' diagonal) that each polish stage
+    # starts from (the growing stages start from 1e-5). Stop 66: at 1e-5 a polish after pruning
+    # often spends its first 4 of 6 evaluations on rejected trial steps (the damping doubling up to
+    # ~1e-2) and takes 0-2 steps (recordings 1, 4, 9 at 40 dB, `bench/fit_time.py`)
+    refine_polish_damping: float = 1e-5
     # the controller integrators' equations in the refinement: "linear" keeps them to the constant
     # and the plain signals (:func:`~.library.integrator_row_mask`); "error" to those without their
     # own loop's integrators (an integrator integrates an error its own state does not enter;
@@ -665,7 +670,7 @@ class IdentConfig:
     def check(self) -> None:
         positive = ["backbone_span", "epochs", "window", "batch_windows", "substeps", "distill_samples", "distill_max_terms",
                     "refine_window", "refine_max_windows", "learning_rate", "refit_span", "refine_growing_substeps",
-                    "refine_prune_rounds", "node_epochs", "node_learning_rate", "limiter_span"]
+                    "refine_prune_rounds", "node_epochs", "node_learning_rate", "limiter_span", "refine_polish_damping"]
         for key in positive:
             if getattr(self, key) <= 0:
                 raise ConfigError(f"identification config: {key} must be > 0, got {getattr(self, key)}")

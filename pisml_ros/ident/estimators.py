@@ -1755,7 +1755,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     order_weights = cfg.refine_prune_degree_preference ** -(degrees - 1.0)
     ridge_weight = _ridge_weight(train, cfg)
 
-    def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0, log=None):
+    def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0, log=None, damping=1e-5):
         """The trajectory fits of ``schedule`` one after the other; ``log`` gets a record per stage
         (window, support, evaluations, accepted steps, wall seconds, cost): where a fit's time goes."""
         result = None
@@ -1781,7 +1781,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                                     stability_records=_stability_anchors(train, smallsignal, cfg),
                                     lambda_eq=rest_weight or cfg.refine_equilibrium_weight,
                                     equilibrium_space="states" if rest_weight else "rates",
-                                    ftol=cfg.refine_stage_tolerance, lambda_ridge=ridge_weight)
+                                    ftol=cfg.refine_stage_tolerance, lambda_ridge=ridge_weight, damping=damping)
             except ValueError as err:  # no trajectory as long as the window: stop growing
                 model.metadata.setdefault("refinement_notes", []).append(f"window {window}: {err}")
                 break
@@ -1837,7 +1837,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         polish_log: list = []
         try:
             polished = run(coef, schedule, cfg.refine_stability_weight, rest_weight=cfg.refine_rest_weight,
-                           log=polish_log) if schedule else None
+                           log=polish_log, damping=cfg.refine_polish_damping) if schedule else None
         except (np.linalg.LinAlgError, FloatingPointError) as err:
             model.metadata.setdefault("refinement_errors", []).append(f"polish: {type(err).__name__}: {err}")
             polished = None

@@ -182,7 +182,7 @@ class TrajectoryFitter:
             on_evaluation=None, keep_going=None, fit_starts_first: bool = False,
             lambda_stab: float = 0.0, stability_margin: float = 0.1, stability_records=None,
             lambda_eq: float = 0.0, ftol: float = 1e-8, equilibrium_space: str = "rates",
-            lambda_ridge: float = 0.0) -> FitResult:
+            lambda_ridge: float = 0.0, damping: float = 1e-5) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -222,6 +222,9 @@ class TrajectoryFitter:
             the coefficients the data determine.
         max_nfev : int
             Cost evaluations (the start and every trial step).
+        damping : float
+            The Levenberg-Marquardt damping to start from (relative to the normal equations'
+            diagonal; > 0).
         ftol : float
             The fit ends when an accepted step lowers the cost by at most this fraction.
         on_evaluation : callable, optional
@@ -250,14 +253,14 @@ class TrajectoryFitter:
                                            lambda_stab, stability_margin, stability_records, lambda_eq,
                                            equilibrium_space, lambda_ridge)
                 return self._solve(torch, problem, coef0, max_nfev, on_evaluation, keep_going, fit_starts_first,
-                                   ftol)
+                                   ftol, damping)
         finally:
             if problem is not None:
                 problem.close()
             torch.set_num_threads(threads)
 
     def _solve(self, torch, problem, coef0, max_nfev, on_evaluation, keep_going, fit_starts_first,
-               ftol) -> FitResult:
+               ftol, damping=1e-5) -> FitResult:
         started = time.monotonic()
         theta = torch.tensor(coef0.ravel()[problem.idx] / problem.scale)
         z = torch.zeros((problem.n_windows, self.n_states))
@@ -278,7 +281,7 @@ class TrajectoryFitter:
         # a light start and a fall of up to 10x per good step (Nielsen: 3x): measured at 60 dB, 1e-3
         # with 3x reached cost 425 in 10 evaluations, this 397 (scipy's trust region before: 398);
         # at 40 dB on the exact structure it made the difference between stalling and converging
-        mu, nu = 1e-5, 2.0
+        mu, nu = damping, 2.0
         # windows that blow up can leave the normal equations without finite values: the fit then
         # ends where it is (a step from there is undefined), without a Hessian for pruning
         while nfev < max_nfev and _finite(normal):
