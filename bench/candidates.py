@@ -48,9 +48,8 @@ def state_errors(model, test, t_split: float = 0.02) -> dict:
 
 
 def main(argv=None) -> int:
-    from bench import (PLANTS, add_settings_option, finite, make_estimator, plant_grid, settings_or_exit, spectra,
-                       spurious_points)
-    from scenarios_bench import SCENARIOS, scenario_datasets
+    from bench import finite, make_estimator, plant_grid, spectra, spurious_points
+    from scenarios_bench import add_recording_options, recording_from_options
 
     from pisml_ros.analysis.metrics import protocol_errors, spectrum_wasserstein
     from pisml_ros.ident import IdentConfig
@@ -58,22 +57,10 @@ def main(argv=None) -> int:
     from pisml_ros.model import ExplicitModel
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenario", default="protocol", help=f"one of {sorted(SCENARIOS)}")
-    parser.add_argument("--plant", default="standard",
-                        help=f"one of {sorted(PLANTS)} (bench.py's; the saturation plant: a current limit)")
-    parser.add_argument("--seed", type=int, default=0, help="recording (scenario and noise seed)")
-    parser.add_argument("--noise", default="40", help="'clean' or an SNR in dB")
-    add_settings_option(parser)
+    add_recording_options(parser)
     parser.add_argument("--out", help="JSON file for the candidates' models and rows")
     args = parser.parse_args(argv)
-    if args.scenario not in SCENARIOS:
-        parser.error(f"--scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
-    if args.plant not in PLANTS:
-        parser.error(f"--plant {args.plant!r}: not one of {sorted(PLANTS)}")
-    settings = settings_or_exit(args.set, parser)  # as `pisml identify --set`
-    snr = None if args.noise == "clean" else float(args.noise)
-
-    plant, train, small, test = scenario_datasets(SCENARIOS[args.scenario], snr, args.seed, PLANTS[args.plant])
+    plant, train, small, test, settings = recording_from_options(args, parser)
     grid = plant_grid(plant)
     truth = {g: plant.eigenvalues(g, 0.0) for g in grid}
     started = time.monotonic()

@@ -54,6 +54,33 @@ def scenario_datasets(spec: dict, snr: float | None, seed: int, effects: dict | 
     return datasets(effects or {}, snr, seed=seed, **spec)
 
 
+def add_recording_options(parser: argparse.ArgumentParser, seed: int = 0) -> None:
+    """``--scenario``, ``--plant``, ``--seed``, ``--noise`` and ``--set``: one recording to fit and the
+    settings to fit it with (``bench/candidates.py``, ``bench/fit_time.py``; :func:`recording_from_options`)."""
+    from bench import PLANTS, add_settings_option
+
+    parser.add_argument("--scenario", default="protocol", help=f"one of {sorted(SCENARIOS)}")
+    parser.add_argument("--plant", default="standard",
+                        help=f"one of {sorted(PLANTS)} (bench.py's; the saturation plant: a current limit)")
+    parser.add_argument("--seed", type=int, default=seed, help="recording (scenario and noise seed)")
+    parser.add_argument("--noise", default="40", help="'clean' or an SNR in dB")
+    add_settings_option(parser)
+
+
+def recording_from_options(args, parser: argparse.ArgumentParser):
+    """``(plant, train, small-signal, test records, settings)`` of :func:`add_recording_options`' arguments;
+    an unknown scenario or plant, or a bad setting, stops the script through ``parser`` before any fit."""
+    from bench import PLANTS, settings_or_exit
+
+    if args.scenario not in SCENARIOS:
+        parser.error(f"--scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
+    if args.plant not in PLANTS:
+        parser.error(f"--plant {args.plant!r}: not one of {sorted(PLANTS)}")
+    settings = settings_or_exit(args.set, parser)  # as `pisml identify --set`
+    snr = None if args.noise == "clean" else float(args.noise)
+    return (*scenario_datasets(SCENARIOS[args.scenario], snr, args.seed, PLANTS[args.plant]), settings)
+
+
 def main(argv=None) -> int:
     from bench import add_settings_option, fit_summary, plant_grid, run_fit, settings_or_exit, ug_sweep_set
 
