@@ -1740,7 +1740,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     dict
         ``{"refined": model, "pruned +B %": model, "pruned +B % x2": model, ...}`` (the caller selects).
     """
-    from .trajfit import backward_elimination
+    from .trajfit import START_DAMPING, backward_elimination
 
     stages = list(zip(cfg.refine_growing_windows, cfg.refine_growing_evaluations))
     polish = list(zip(cfg.refine_polish_windows, cfg.refine_polish_evaluations))
@@ -1755,7 +1755,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     order_weights = cfg.refine_prune_degree_preference ** -(degrees - 1.0)
     ridge_weight = _ridge_weight(train, cfg)
 
-    def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0, log=None, damping=1e-5):
+    def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0, log=None,
+            damping=START_DAMPING):
         """The trajectory fits of ``schedule`` one after the other; ``log`` gets a record per stage
         (window, support, evaluations, accepted steps, wall seconds, cost): where a fit's time goes."""
         result = None

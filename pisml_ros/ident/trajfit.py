@@ -114,6 +114,13 @@ def _gram_adder():
 _add_gram = _gram_adder()
 
 
+# the Levenberg-Marquardt damping a fit starts from (relative to the normal equations' diagonal): a
+# light start and a fall of up to 10x per good step (Nielsen: 3x); measured at 60 dB, 1e-3 with 3x
+# reached cost 425 in 10 evaluations, this 397 (scipy's trust region before: 398); at 40 dB on the
+# exact structure it made the difference between stalling and converging
+START_DAMPING = 1e-5
+
+
 @dataclasses.dataclass
 class FitResult:
     coefficients: np.ndarray
@@ -182,7 +189,7 @@ class TrajectoryFitter:
             on_evaluation=None, keep_going=None, fit_starts_first: bool = False,
             lambda_stab: float = 0.0, stability_margin: float = 0.1, stability_records=None,
             lambda_eq: float = 0.0, ftol: float = 1e-8, equilibrium_space: str = "rates",
-            lambda_ridge: float = 0.0, damping: float = 1e-5) -> FitResult:
+            lambda_ridge: float = 0.0, damping: float = START_DAMPING) -> FitResult:
         """Refine ``coef0`` on the entries where ``mask`` is true.
 
         Parameters
@@ -260,7 +267,7 @@ class TrajectoryFitter:
             torch.set_num_threads(threads)
 
     def _solve(self, torch, problem, coef0, max_nfev, on_evaluation, keep_going, fit_starts_first,
-               ftol, damping=1e-5) -> FitResult:
+               ftol, damping) -> FitResult:
         started = time.monotonic()
         theta = torch.tensor(coef0.ravel()[problem.idx] / problem.scale)
         z = torch.zeros((problem.n_windows, self.n_states))
@@ -278,9 +285,6 @@ class TrajectoryFitter:
 
         cost = evaluate(theta, z)
         normal = problem.normal_equations(theta, z)
-        # a light start and a fall of up to 10x per good step (Nielsen: 3x): measured at 60 dB, 1e-3
-        # with 3x reached cost 425 in 10 evaluations, this 397 (scipy's trust region before: 398);
-        # at 40 dB on the exact structure it made the difference between stalling and converging
         mu, nu = damping, 2.0
         # windows that blow up can leave the normal equations without finite values: the fit then
         # ends where it is (a step from there is undefined), without a Hessian for pruning
@@ -288,7 +292,7 @@ class TrajectoryFitter:
             step_theta, step_z, predicted = problem.damped_step(normal, mu)
             trial = evaluate(theta + step_theta, z + step_z)
             if trial < cost:
-                # Nielsen's update of the damping from the gain ratio (floor 0.1, see above)
+                # Nielsen's update of the damping from the gain ratio (floor 0.1, see START_DAMPING)
                 gain = (cost - trial) / max(predicted, 1e-300)
                 mu *= max(0.1, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3)
                 nu = 2.0
