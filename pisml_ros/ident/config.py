@@ -214,7 +214,7 @@ class IdentConfig:
     # but with 1e-6 (`bench/setting_sweep.py run --name tol6-s66 --set refine_stage_tolerance=1e-6`,
     # stopped after recordings 0-12, bench/sweeps/tol6-s66.json) 6 of 13 were within both accuracy
     # targets with no spurious mode against 9 (lost 0, 4 and 9, none won), fits median 55.0 s against 64.9 s
-    # (stop 65's run, another machine; here recording 1 took 55-62 s with 1e-8 in five runs)
+    # (stop 65's run, another machine; here recording 1 took 54.7-61.9 s with 1e-8 in eight runs)
     refine_stage_tolerance: float = 1e-8
     # on noisy data: prune-and-polish rounds. Each round prunes the last round's polished model at the
     # first prune budget, then re-fits it (round 1 with every polish stage, later rounds with the
