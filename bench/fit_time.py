@@ -52,6 +52,24 @@ def format_stage(stage: dict) -> str:
             f"cost {stage['cost']:.6g}")
 
 
+def extra_runs(meta: dict) -> list[str]:
+    """Why the fit ran more than its two starts, from the chosen model's metadata: the rescue's and
+    the unrestricted fallback's records (their trigger: the score of the model the selection would
+    have taken over the noise floor, and its rest points it is inconsistent with)."""
+    lines = []
+    for key, label in (("refinement_rescue", "rescue"), ("refinement_unrestricted", "unrestricted fallback")):
+        record = meta.get(key)
+        if not record:
+            continue
+        ratio = record.get("ratio")
+        ran = "ran" if record.get("run") else "not run"
+        lines.append(f"{label}: {ran} (before it: {record.get('selected_before')!r}, "
+                     f"{'' if ratio is None else f'{ratio:.2f}x the noise floor, '}"
+                     f"inconsistent at {record.get('inconsistent_rest_points', 0)} rest points"
+                     f"{', refinement lost' if record.get('refinement_lost') else ''})")
+    return lines
+
+
 def main(argv=None) -> int:
     from scenarios_bench import add_recording_options, recording_from_options
 
@@ -70,6 +88,8 @@ def main(argv=None) -> int:
           f"{cpu:.1f} s CPU (cores {cpu / wall:.2f} busy on average); chosen "
           f"{est.model_.metadata['selection']['chosen']!r}")
     print("stage clocks (s): " + ", ".join(f"{key.removesuffix('_seconds')} {value}" for key, value in clocks.items()))
+    for line in extra_runs(est.model_.metadata):
+        print(line)
     families = family_stages(est.candidates_)
     for family, stages in families.items():
         total = sum(stage["seconds"] for stage in stages)

@@ -36,3 +36,15 @@ def test_stages_are_grouped_by_refinement_family_in_the_order_they_ran():
     assert [s["seconds"] for s in families["from noise-compensated backbone"]] == [5.0, 4.0, 3.0]
     assert [(s["part"], s["seconds"]) for s in families["with growing prior"]] == [("polish 3", 6.0)]
     assert "window  100" in fit_time.format_stage(first[-1]) and "accepted  15" in fit_time.format_stage(first[-1])
+
+
+def test_the_extra_refinements_say_why_they_ran():
+    meta = {"refinement_rescue": {"run": True, "selected_before": "pruned +0.1 %", "ratio": 2.61,
+                                  "inconsistent_rest_points": 0},
+            "refinement_unrestricted": {"run": False, "selected_before": "pruned +0.1 % x3", "ratio": None,
+                                        "inconsistent_rest_points": 1, "refinement_lost": True}}
+    rescue, fallback = fit_time.extra_runs(meta)
+    assert rescue == "rescue: ran (before it: 'pruned +0.1 %', 2.61x the noise floor, inconsistent at 0 rest points)"
+    assert fallback.startswith("unrestricted fallback: not run")
+    assert "inconsistent at 1 rest points, refinement lost" in fallback
+    assert fit_time.extra_runs({}) == []
