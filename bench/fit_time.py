@@ -28,19 +28,19 @@ def family_stages(candidates: dict) -> dict:
     """``{family: [stage record, ...]}`` from the candidates' metadata: a family is a refinement's
     candidates (``"refined"`` and its prune rounds, with the same name suffix); its stages are the
     growing-window stages, then each round's polish, in the order they ran."""
+    from pisml_ros.ident.estimators import _refinement_family
+
     families: dict = {}
     for name, model in candidates.items():
+        suffix = _refinement_family(name)  # the engine's own reading of its candidate names
+        if suffix is None:
+            continue
         meta = getattr(model, "metadata", {}) or {}
         refinement, pruning = meta.get("refinement") or {}, meta.get("pruning") or {}
         if name.startswith("refined") and refinement.get("stages"):
-            suffix = name[len("refined"):].strip()
-            families.setdefault(suffix, {})[0] = [dict(stage, part="growing") for stage in refinement["stages"]]
-        elif name.startswith("pruned") and pruning.get("polish_stages"):
-            # "pruned +0.1 % x2 from …": the suffix after the round's own name
-            rest = name.split(" %", 1)[1] if " %" in name else ""
-            rest = rest[3:] if rest.startswith(" x") and rest[2:3].isdigit() else rest
-            suffix = rest.strip()
-            families.setdefault(suffix, {})[pruning["round"]] = [
+            families.setdefault(suffix.strip(), {})[0] = [dict(stage, part="growing") for stage in refinement["stages"]]
+        elif pruning.get("polish_stages"):
+            families.setdefault(suffix.strip(), {})[pruning["round"]] = [
                 dict(stage, part=f"polish {pruning['round']}") for stage in pruning["polish_stages"]]
     return {suffix or "first start": [s for _, stages in sorted(parts.items()) for s in stages]
             for suffix, parts in families.items()}
