@@ -216,6 +216,18 @@ class IdentConfig:
     # targets with no spurious mode against 9 (lost 0, 4 and 9, none won), fits median 55.0 s against 64.9 s
     # (stop 65's run, another machine; here recording 1 took 54.7-61.9 s with 1e-8 in eight runs)
     refine_stage_tolerance: float = 1e-8
+    # the first this many growing-window stages carry their coefficient tangents in float32
+    # (TrajectoryFitter.single_precision: the states, every cost compared, the later stages, the
+    # polish and every Hessian that prunes stay float64); 0: float64 throughout. Stop 67 (to buy fit
+    # time): float32 makes the tangents' products 3-4x quicker and a Gauss-Newton pass ~25 % (0.48 ->
+    # 0.36 s, windows of 10, one thread), but its steps stall above float64's floor (clean records,
+    # 5 evaluations: replay error 4.5e-4 against 7e-9) and the models move. 40 dB protocol
+    # recordings 0-9 (`bench/setting_sweep.py run --set refine_single_precision_stages=N`): 3 (all
+    # three stages, bench/sweeps/single3-s67.json) within both accuracy targets with no spurious mode
+    # against 6 (lost 0, 5, 7), fits median 56.3 s; 2 (windows 10 and 25, single2-s67.json) 5 of 10
+    # (lost 4 and 7, won 6), median 68.8 s, no quicker than float64 on the same machine (recording 1:
+    # 74-80 s; with 3, 61.8 s). Not taken
+    refine_single_precision_stages: int = 0
     # on noisy data: prune-and-polish rounds. Each round prunes the last round's polished model at the
     # first prune budget, then re-fits it (round 1 with every polish stage, later rounds with the
     # last one); round R's candidate is "pruned +B % xR". Round 1 prunes at the refined model, whose
@@ -684,6 +696,7 @@ class IdentConfig:
                     "distill_threshold", "distill_spread", "refine_max_nfev", "selection_tolerance", "selection_unstable_rate",
                     "refine_stability_weight", "refine_stability_margin", "refine_equilibrium_weight",
                     "refine_growing_stability_weight", "refine_stage_prune_budget", "refine_stage_tolerance",
+                    "refine_single_precision_stages",
                     "refine_prune_reference_samples", "refine_rest_weight", "limiter_rest_weight",
                     "refine_ridge_weight", "refine_max_step", "clean_growing_error",
                     "weight_decay", "node_weight_decay"]:

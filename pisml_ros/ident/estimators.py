@@ -1659,12 +1659,13 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
 
     substeps_used: set = set()
 
-    def make_fitter(window, max_windows, substeps=2):
+    def make_fitter(window, max_windows, substeps=2, single_precision=False):
         if cfg.refine_max_step > 0:  # coarse samples: RK4's own error would bias the coefficients
             substeps = max(substeps, math.ceil(train.dt / cfg.refine_max_step - 1e-9))
         substeps_used.add(substeps)
         return TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=window,
-                                substeps=substeps, weights=weights, max_windows=max_windows, threads=threads)
+                                substeps=substeps, weights=weights, max_windows=max_windows, threads=threads,
+                                single_precision=single_precision)
 
     errors = {} if errors is None else errors
     if cfg.refine_growing_windows and (_noisy(train) if growing is None else growing):
@@ -1756,7 +1757,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     ridge_weight = _ridge_weight(train, cfg)
 
     def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0, log=None,
-            damping=START_DAMPING):
+            damping=START_DAMPING, single_stages=0):
         """The trajectory fits of ``schedule`` one after the other; ``log`` gets a record per stage
         (window, support, evaluations, accepted steps, wall seconds, cost): where a fit's time goes."""
         result = None
@@ -1766,7 +1767,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                 coef = backward_elimination(result.coefficients, result.hessian, result.support,
                                             [stage_budget * result.cost], groups=result.support % model.n_states)[0][1]
                 pruned_between.append(int(np.count_nonzero(coef)))
-            fitter = make_fitter(window, None, substeps)
+            fitter = make_fitter(window, None, substeps, single_precision=stage < single_stages)
             offset = done[0]
 
             def on_evaluation(nfev, cost):
@@ -1801,7 +1802,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     growing_log: list = []
     try:
         result = run(model.coefficients.copy(), stages, cfg.refine_growing_stability_weight,
-                     substeps=cfg.refine_growing_substeps, stage_budget=cfg.refine_stage_prune_budget, log=growing_log)
+                     substeps=cfg.refine_growing_substeps, stage_budget=cfg.refine_stage_prune_budget, log=growing_log,
+                     single_stages=cfg.refine_single_precision_stages)
     except (np.linalg.LinAlgError, FloatingPointError) as err:
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
         return {}

@@ -65,9 +65,9 @@ def blas_threads(limit: int | None):
     return threadpool_limits(limits=limit)
 
 
-def _gram_adder():
+def _gram_adder(single: bool = False):
     """``add(a, c)``: c += aᵀ·a in c's upper triangle, a (k, n) C-ordered, c (n, n) F-ordered,
-    both float64: BLAS dsyrk (half the work of a product).
+    both float64 (``single``: both float32): BLAS dsyrk (ssyrk; half the work of a product).
 
     Called through ctypes on the function pointer scipy exports for Cython
     (``scipy.linalg.cython_blas``), because ctypes releases the GIL for the call and the f2py
@@ -81,37 +81,42 @@ def _gram_adder():
     try:
         from scipy.linalg import cython_blas
 
-        capsule = cython_blas.__pyx_capi__["dsyrk"]
+        capsule = cython_blas.__pyx_capi__["ssyrk" if single else "dsyrk"]
         get_name = ctypes.PYFUNCTYPE(ctypes.c_char_p, ctypes.py_object)(("PyCapsule_GetName", ctypes.pythonapi))
         get_pointer = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
             ("PyCapsule_GetPointer", ctypes.pythonapi))
-        int_p, double_p = ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_double)
-        dsyrk = ctypes.CFUNCTYPE(None, ctypes.c_char_p, ctypes.c_char_p, int_p, int_p, double_p, ctypes.c_void_p,
-                                 int_p, double_p, ctypes.c_void_p, int_p)(get_pointer(capsule, get_name(capsule)))
+        scalar = ctypes.c_float if single else ctypes.c_double
+        int_p, scalar_p = ctypes.POINTER(ctypes.c_int), ctypes.POINTER(scalar)
+        syrk = ctypes.CFUNCTYPE(None, ctypes.c_char_p, ctypes.c_char_p, int_p, int_p, scalar_p, ctypes.c_void_p,
+                                int_p, scalar_p, ctypes.c_void_p, int_p)(get_pointer(capsule, get_name(capsule)))
     except (ImportError, AttributeError, KeyError, TypeError, ValueError, OSError):
-        from scipy.linalg.blas import dsyrk as wrapped
+        from scipy.linalg.blas import dsyrk, ssyrk
+
+        wrapped = ssyrk if single else dsyrk
 
         def add(a, c):
             wrapped(1.0, a.T, beta=1.0, c=c, trans=0, lower=0, overwrite_c=1)
 
         return add
 
-    one = ctypes.c_double(1.0)
+    one = scalar(1.0)
+    dtype = np.float32 if single else np.float64
 
     def add(a, c):
-        assert a.flags.c_contiguous and c.flags.f_contiguous and a.dtype == c.dtype == np.float64
+        assert a.flags.c_contiguous and c.flags.f_contiguous and a.dtype == c.dtype == dtype
         k, n = a.shape
         if k == 0 or n == 0:
             return
         # column-major: aᵀ is n × k with leading dimension n, so c += aᵀ·(aᵀ)ᵀ is "N"
         size, depth = ctypes.c_int(n), ctypes.c_int(k)
-        dsyrk(b"U", b"N", ctypes.byref(size), ctypes.byref(depth), ctypes.byref(one), a.ctypes.data,
+        syrk(b"U", b"N", ctypes.byref(size), ctypes.byref(depth), ctypes.byref(one), a.ctypes.data,
               ctypes.byref(size), ctypes.byref(one), c.ctypes.data, ctypes.byref(size))
 
     return add
 
 
 _add_gram = _gram_adder()
+_add_gram_single = _gram_adder(single=True)
 
 
 # the Levenberg-Marquardt damping a fit starts from (relative to the normal equations' diagonal): a
@@ -171,10 +176,18 @@ class TrajectoryFitter:
     threads : int
         The windows are integrated in this many parts side by side, one thread each (torch and
         the BLAS on one thread per part while the fit runs).
+    single_precision : bool
+        Carry the coefficient tangents (the Gauss-Newton Jacobian's coefficient columns: its
+        forcing, recursion, Hessian and coupling to the start states) in float32. The states,
+        residuals and every cost the Levenberg-Marquardt loop compares stay float64, so a step is
+        taken only where it lowers the exact cost; the steps themselves come from a Jacobian good
+        to ~1e-7 instead of ~1e-16. The normal equations at the point the fit ends are computed
+        again in float64: the Hessian it returns (:attr:`FitResult.hessian`, which prunes and
+        gives the covariance) has a condition number of ~1e10, beyond float32's reach.
     """
 
     def __init__(self, terms: TermSet, n_states: int, dt: float, window: int = 50, substeps: int = 2,
-                 weights=None, max_windows: int | None = None, threads: int = 1):
+                 weights=None, max_windows: int | None = None, threads: int = 1, single_precision: bool = False):
         self.terms = terms
         self.n_states = n_states
         self.dt = dt
@@ -183,6 +196,7 @@ class TrajectoryFitter:
         self.weights = np.ones(n_states) if weights is None else np.asarray(weights, dtype=float)
         self.max_windows = max_windows
         self.threads = max(1, int(threads))
+        self.single_precision = bool(single_precision)
 
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
@@ -309,6 +323,9 @@ class TrajectoryFitter:
                 nu *= 2.0
                 if mu > 1e10:
                     break
+        if problem.single_precision and _finite(normal):
+            problem.single_precision = False
+            normal = problem.normal_equations(theta, z)
         hessian = problem.profiled_hessian(normal) if _finite(normal) else None
         # the priors' curvature is a plain sum in the normal equations: the data's is the rest
         data = hessian - problem.prior_hessian(normal) if hessian is not None else None
@@ -440,6 +457,7 @@ class _ShootingProblem:
         self.n_windows = self.X.shape[0]
         # torch.func's forward-mode autodiff (TermSet.thread_safe_gradient) must stay on one thread
         self.threads = fitter.threads if fitter.terms.thread_safe_gradient() else 1
+        self.single_precision = fitter.single_precision
         self._pool = None
         self._kept = None  # the last cost pass: (θ, z, states, residuals, RK4 stage points)
         self.shape = coef0.shape
@@ -646,16 +664,20 @@ class _ShootingProblem:
         n, n_win, n_c = self.n, X.shape[0], self.idx.size
         n_stages, n_terms, n_inputs = 4 * self.substeps, len(self.terms), u_all.shape[-1]
         w = self.res_weight
+        # the coefficient tangents' type (TrajectoryFitter.single_precision); the rest stays float64
+        single = self.single_precision and coefficients
+        tangent_type = torch.float32 if single else torch.float64
+        add_gram = _add_gram_single if single else _add_gram
         blocks = {"A": torch.zeros((n_win, n, n)), "bz": torch.zeros((n_win, n))}
         if coefficients:
-            blocks.update(g=torch.zeros(n_c), E=torch.zeros((n_win, n, n_c)))
+            blocks.update(g=torch.zeros(n_c), E=torch.zeros((n_win, n, n_c), dtype=tangent_type))
             # JᵀJ of the coefficients by BLAS syrk (half the work of a product; upper triangle)
-            hessian = np.zeros((n_c, n_c), order="F")
+            hessian = np.zeros((n_c, n_c), order="F", dtype=np.float32 if single else np.float64)
         # where each support coefficient sits in a (states × terms) table flattened row by row
         state_term = self.row_of * n_terms + self.term_of
         # the coefficient tangents are carried in residual units (state k's row times its residual
         # weight w_k): the Gauss-Newton blocks then read them as they are
-        forcing_scale = w[:, None] * self.scale_t[None, :]
+        forcing_scale = (w[:, None] * self.scale_t[None, :]).to(tangent_type)
         rescale = w[:, None] / w[None, :]
 
         def accumulate(jz, jc, r, alive):
@@ -673,14 +695,16 @@ class _ShootingProblem:
             # a non-finite entry makes its column's gradient entry non-finite, so the copy that
             # clears them is made only then
             flat = jc.reshape(-1, n_c)
+            r = r.to(tangent_type)
             gradient = flat.T @ r.reshape(-1)
             if not (bool(alive.all()) and bool(torch.isfinite(gradient).all())):
-                jc = torch.nan_to_num(jc, nan=0.0, posinf=0.0, neginf=0.0) * mask
+                jc = torch.nan_to_num(jc, nan=0.0, posinf=0.0, neginf=0.0) * mask.to(tangent_type)
                 flat = jc.reshape(-1, n_c)
                 gradient = flat.T @ r.reshape(-1)
             if n_c:
-                _add_gram(np.ascontiguousarray(flat.numpy()), hessian)
+                add_gram(np.ascontiguousarray(flat.numpy()), hessian)
             blocks["g"] += gradient
+            jz_t = jz_t.to(tangent_type)
             for i in range(jc.shape[0]):
                 blocks["E"].baddbmm_(jz_t[i], jc[i])
 
@@ -692,10 +716,11 @@ class _ShootingProblem:
             return r, alive
 
         s_z = torch.diag(self.x_unit).expand(n_win, n, n).clone()  # d x / d z (each window's own start)
-        s_c = torch.zeros((n_win, n, n_c)) if coefficients else None  # d x / d θ, residual units
+        s_c = torch.zeros((n_win, n, n_c), dtype=tangent_type) if coefficients else None  # d x / d θ, residual units
         r, alive = rows_at(0, 1)
         accumulate(s_z[None], None, r, alive)  # the start: no coefficient enters yet
-        # samples per chunk: ~256 window-samples (the chunk's tangents ~8 MB at 300 coefficients)
+        # samples per chunk: ~256 window-samples (the chunk's tangents ~8 MB at 300 coefficients; stop 67,
+        # windows of 10 and 25 at 40 dB: 1024 and 4096 took longer per pass, with one thread and two)
         chunk = max(1, 256 // max(n_win, 1))
         for k0 in range(0, self.window, chunk):
             k1 = min(self.window, k0 + chunk)
@@ -719,11 +744,12 @@ class _ShootingProblem:
                 # (D_i·B_i)[:, (t, j)] = D_i[:, j]·value_t: every pair from one small product of
                 # the D's and the stages' term values, then the support's entries picked
                 d = sample[..., n:].reshape(m * n_win, n, n_stages, n).transpose(2, 3).reshape(m * n_win, n * n, n_stages)
-                table = torch.bmm(d, values.view(m * n_win, n_stages, n_terms)).view(m * n_win * n, n * n_terms)
+                table = torch.bmm(d.to(tangent_type), values.view(m * n_win, n_stages, n_terms).to(tangent_type)
+                                  ).view(m * n_win * n, n * n_terms)
                 # (2-D index_select: ~5x the speed of the same pick along a 3-D tensor's last axis);
                 # each sample's slot then takes its tangents in place (S = P·S + forcing)
                 tangents_c = torch.index_select(table, 1, state_term).view(m, n_win, n, n_c).mul_(forcing_scale)
-                weighted = propagators * rescale
+                weighted = (propagators * rescale).to(tangent_type)
             for i in range(m):
                 s_z = torch.bmm(propagators[i], s_z, out=tangents_z[i])
                 if coefficients:
@@ -731,8 +757,9 @@ class _ShootingProblem:
             r, alive = rows_at(k0 + 1, k1 + 1)
             accumulate(tangents_z, tangents_c if coefficients else None, r, alive)
         if coefficients:
-            upper = torch.from_numpy(np.triu(hessian))
+            upper = torch.from_numpy(np.triu(hessian).astype(np.float64))
             blocks["H"] = upper + upper.T - torch.diag(torch.diagonal(upper))
+            blocks["E"] = blocks["E"].to(torch.float64)
         return blocks
 
     def _smallsignal_residuals(self, theta):
