@@ -47,7 +47,9 @@ def family_stages(candidates: dict) -> dict:
 
 
 def format_stage(stage: dict) -> str:
-    return (f"  {stage['part']:10s} window {stage['window']:4d}  support {stage['support']:4d}  "
+    # (the windows' count since stop 67)
+    windows = f" x {stage['windows']:3d}" if stage.get("windows") is not None else ""
+    return (f"  {stage['part']:10s} window {stage['window']:4d}{windows}  support {stage['support']:4d}  "
             f"evaluations {stage['evaluations']:3d}  accepted {stage['accepted']:3d}  {stage['seconds']:6.2f} s  "
             f"cost {stage['cost']:.6g}")
 

@@ -35,7 +35,8 @@ def test_stages_are_grouped_by_refinement_family_in_the_order_they_ran():
                                                           ("polish 2", 2.0)]
     assert [s["seconds"] for s in families["from noise-compensated backbone"]] == [5.0, 4.0, 3.0]
     assert [(s["part"], s["seconds"]) for s in families["with growing prior"]] == [("polish 3", 6.0)]
-    assert "window  100" in fit_time.format_stage(first[-1]) and "accepted  15" in fit_time.format_stage(first[-1])
+    assert "window  100  support" in fit_time.format_stage(first[-1]) and "accepted  15" in fit_time.format_stage(first[-1])
+    assert "window   10 x  48  support" in fit_time.format_stage({**first[0], "windows": 48})
 
 
 def test_the_extra_refinements_say_why_they_ran():

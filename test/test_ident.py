@@ -100,6 +100,12 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
     with pytest.raises(ConfigError, match="clean_growing_error must be >= 0"):
         IdentConfig.from_mapping({"clean_growing_error": -0.1})
     assert IdentConfig.from_mapping({"clean_growing_error": "inf"}).clean_growing_error == math.inf
+    with pytest.raises(ConfigError, match="refine_single_precision_stages must be >= 0"):
+        IdentConfig.from_mapping({"refine_single_precision_stages": -1})
+    for bad in ("240,0", "240.5,0,0", "-1,0,0"):
+        with pytest.raises(ConfigError, match="refine_growing_max_windows must be empty or one count >= 0"):
+            IdentConfig.from_mapping({"refine_growing_max_windows": bad})
+    assert IdentConfig.from_mapping({"refine_growing_max_windows": "240,0,0"}).refine_growing_max_windows == (240, 0, 0)
     cfg = IdentConfig.from_mapping({"epochs": "7", "hidden": "32,16", "refine": "false",
                                     "refine_prune_budgets": "0.002,0.02"})
     assert cfg.epochs == 7 and cfg.hidden == (32, 16) and cfg.refine is False
@@ -856,6 +862,22 @@ def test_training_errors_of_a_family_run_together_and_match_one_by_one():
     assert together["truth"] < together["off"]
 
 
+def test_a_growing_stage_keeps_at_most_its_windows():
+    """``refine_growing_max_windows``: a stage fits that many windows, evenly spread; 0 all of them."""
+    from pisml_ros.ident import IdentConfig
+    from pisml_ros.ident.estimators import refine_explicit
+    from pisml_ros.model import ExplicitModel
+
+    train, truth = _oscillator_data(4, lambda rng: [(int(rng.integers(50, 350)), rng.uniform(0.5, 1.5))], seed=1)
+    model = ExplicitModel(("xa", "xb"), ("v",), ["xa", "xb", "v"], truth * 1.1)
+    settings = {"refine_growing_windows": "10,25", "refine_growing_evaluations": "2,2", "refine_prune_budgets": ""}
+    every = [sum((len(tr) - 1) // w for tr in train) for w in (10, 25)]
+    for most, windows in (("", every), ("7,0", [7, every[1]]), ("0,1000", every)):
+        cfg = IdentConfig.from_mapping({**settings, "refine_growing_max_windows": most})
+        out = refine_explicit(model, train, None, cfg)
+        assert [stage["windows"] for stage in out["refined"].metadata["refinement"]["stages"]] == windows
+
+
 @pytest.mark.slow
 def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     # from 20-30 % off, with a spurious product term, on noisy records: the stages of growing windows
@@ -883,6 +905,7 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     # where the time went: a record per stage (bench/fit_time.py reads them)
     stages = out["refined"].metadata["refinement"]["stages"]
     assert [stage["window"] for stage in stages] == [10, 50] and stages[0]["support"] == np.count_nonzero(start)
+    assert [stage["windows"] for stage in stages] == [sum((len(tr) - 1) // w for tr in train) for w in (10, 50)]
     for stage, budget in zip(stages, (10, 8)):
         assert 0 <= stage["accepted"] < stage["evaluations"] <= budget and stage["seconds"] > 0
     assert stages[-1]["cost"] == out["refined"].metadata["refinement"]["cost"]

@@ -160,6 +160,9 @@ class IdentConfig:
     # pass faster: the same models, recordings 0-4 in 52-61 s, median 53.8 s, instead of 89-130 s;
     # `--set refine_growing_evaluations=15,10,10` gives the old models in about two thirds of the time)
     refine_growing_evaluations: tuple = (30, 20, 20)
+    # at most this many windows per growing-window stage, evenly spread over the records (0 or an
+    # empty list: all of them); a stage's Gauss-Newton pass is linear in its windows
+    refine_growing_max_windows: tuple = ()
     # RK4 steps per sample in the growing-window stages (the polish uses 2), either raised to keep
     # refine_max_step (so 1 needs refine_max_step 0 at 10 kHz since stop 38). Measured at 1 (40 dB,
     # recordings 0 / 1 / 2): 53 / 48 / 48 s instead of ~70 s, but recording 0's pruned model was
@@ -713,6 +716,12 @@ class IdentConfig:
                 raise ConfigError(f"identification config: refine_{stages}_windows and refine_{stages}_evaluations "
                                   f"must be equally long lists of positive integers, got {list(windows)} and "
                                   f"{list(evaluations)}")
+        if self.refine_growing_max_windows and (len(self.refine_growing_max_windows) != len(self.refine_growing_windows)
+                                                or any(not (v >= 0 and v == int(v)) for v in self.refine_growing_max_windows)):
+            raise ConfigError(f"identification config: refine_growing_max_windows must be empty or one count >= 0 "
+                              f"(0: all) per growing-window stage {list(self.refine_growing_windows)}, got "
+                              f"{list(self.refine_growing_max_windows)}")
+        self.refine_growing_max_windows = tuple(int(v) for v in self.refine_growing_max_windows)
         if not all(math.isfinite(g) and g > 0 for g in self.selection_equilibrium_grid):
             raise ConfigError(f"identification config: selection_equilibrium_grid must hold positive grid "
                               f"voltages, got {list(self.selection_equilibrium_grid)}")
@@ -755,7 +764,7 @@ class IdentConfig:
         out["hidden"] = list(self.hidden)
         out["refine_prune_budgets"] = list(self.refine_prune_budgets)
         out["refit_budgets"] = list(self.refit_budgets)
-        for key in ("refine_growing_windows", "refine_growing_evaluations", "refine_polish_windows",
+        for key in ("refine_growing_windows", "refine_growing_evaluations", "refine_growing_max_windows", "refine_polish_windows",
                     "refine_polish_evaluations", "selection_equilibrium_grid"):
             out[key] = list(getattr(self, key))
         return out

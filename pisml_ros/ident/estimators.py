@@ -1757,7 +1757,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     ridge_weight = _ridge_weight(train, cfg)
 
     def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0, log=None,
-            damping=START_DAMPING, single_stages=0):
+            damping=START_DAMPING, single_stages=0, max_windows=()):
         """The trajectory fits of ``schedule`` one after the other; ``log`` gets a record per stage
         (window, support, evaluations, accepted steps, wall seconds, cost): where a fit's time goes."""
         result = None
@@ -1767,7 +1767,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                 coef = backward_elimination(result.coefficients, result.hessian, result.support,
                                             [stage_budget * result.cost], groups=result.support % model.n_states)[0][1]
                 pruned_between.append(int(np.count_nonzero(coef)))
-            fitter = make_fitter(window, None, substeps, single_precision=stage < single_stages)
+            most = max_windows[stage] if stage < len(max_windows) and max_windows[stage] > 0 else None
+            fitter = make_fitter(window, most, substeps, single_precision=stage < single_stages)
             offset = done[0]
 
             def on_evaluation(nfev, cost):
@@ -1790,7 +1791,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
             done[0] += evaluations
             used[0] += result.nfev
             if log is not None:
-                log.append({"window": window, "support": int(np.count_nonzero(coef)), "evaluations": result.nfev,
+                log.append({"window": window, "windows": result.windows, "support": int(np.count_nonzero(coef)),
+                            "evaluations": result.nfev,
                             "accepted": result.accepted, "seconds": round(time.monotonic() - stage_started, 3),
                             "cost": result.cost})
             coef = result.coefficients
@@ -1803,7 +1805,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     try:
         result = run(model.coefficients.copy(), stages, cfg.refine_growing_stability_weight,
                      substeps=cfg.refine_growing_substeps, stage_budget=cfg.refine_stage_prune_budget, log=growing_log,
-                     single_stages=cfg.refine_single_precision_stages)
+                     single_stages=cfg.refine_single_precision_stages, max_windows=cfg.refine_growing_max_windows)
     except (np.linalg.LinAlgError, FloatingPointError) as err:
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
         return {}
@@ -1811,6 +1813,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         return {}
     schedule = {"windows": [w for w, _ in stages], "evaluations": [n for _, n in stages],
                 "pruned_between": pruned_between, "stability_weight": cfg.refine_growing_stability_weight}
+    if cfg.refine_growing_max_windows:
+        schedule["max_windows"] = list(cfg.refine_growing_max_windows)
     meta["refinement"] = {"cost": result.cost, "nfev": used[0], "seconds": time.monotonic() - started,
                           "abandoned": False, "growing_windows": schedule, "rk4_substeps": sorted(substeps_used or ()),
                           "stages": growing_log}

@@ -141,6 +141,7 @@ class FitResult:
     hessian: np.ndarray | None = None
     support: np.ndarray | None = None
     window: int | None = None  # samples per shooting window of the fit
+    windows: int | None = None  # shooting windows of the fit
     # :attr:`hessian` without the priors' curvature (stability, equilibrium, ridge): what the data pin
     data_hessian: np.ndarray | None = None
 
@@ -331,7 +332,7 @@ class TrajectoryFitter:
         data = hessian - problem.prior_hessian(normal) if hessian is not None else None
         return FitResult(problem.coefficients(theta), cost, nfev, time.monotonic() - started, accepted=accepted,
                          hessian=hessian if hessian is not None and np.all(np.isfinite(hessian)) else None,
-                         support=problem.idx, window=problem.window,
+                         support=problem.idx, window=problem.window, windows=problem.n_windows,
                          data_hessian=data if data is not None and np.all(np.isfinite(data)) else None)
 
 
