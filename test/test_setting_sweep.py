@@ -34,6 +34,13 @@ def test_a_recording_meets_each_target_on_its_own_figures():
     assert (counts["accuracy_and_no_spurious"], counts["spurious"], counts["compression"], counts["all_targets"]) \
         == (1, 1, 1, 1)
     assert counts["iod_worst"] == 0.6 and counts["coefficients_median"] == 90
+    # wall and CPU times where the rows have them (CPU since stop 67: the machine's speed drifts)
+    timed = [dict(_row(0.3, 0.6, 80), seconds=50.0, cpu_seconds=90.0), dict(_row(0.3, 0.6, 80), seconds=70.0)]
+    counts = setting_sweep.summary(timed)
+    assert counts["seconds_median"] == 60.0 and counts["cpu_seconds_median"] == 90.0
+    assert "50 s (CPU 90 s)" in setting_sweep.format_row(timed[0]) and "CPU" not in setting_sweep.format_row(timed[1])
+    assert "time median 60.0 worst 70.0 s (CPU median 90.0 s)" in setting_sweep.format_summary(
+        {"name": "x", "rows": dict(enumerate(timed))})
 
 
 def test_microgrid_verdicts_count_against_the_plants():
