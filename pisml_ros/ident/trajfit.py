@@ -325,6 +325,7 @@ class TrajectoryFitter:
                 if mu > 1e10:
                     break
         if problem.single_precision and _finite(normal):
+            # the Hessian returned prunes and gives the covariance: float64, at the point the fit ends
             problem.single_precision = False
             normal = problem.normal_equations(theta, z)
         hessian = problem.profiled_hessian(normal) if _finite(normal) else None
