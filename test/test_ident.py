@@ -491,6 +491,25 @@ def test_a_fit_on_noisy_inputs_holds_them_and_says_so(train, small):
     second = est.explicit_model_.metadata["refinement_second_start"]
     assert second["run"] and second["side_by_side"] and est.metrics_["refinement_threads"] == 2.0
     assert f"refined from {second['start']}" in est.explicit_model_.metadata["selection"]["training_error_pct"]
+    assert not second["early"] and "refinement_early_seconds" not in est.metrics_
+    # started beside the hybrid's training instead: the same candidates, the same choice, the
+    # numbers within rounding (the hybrid trains on one thread meanwhile)
+    with torch_threads(2):
+        early = make_estimator("pisml", IdentConfig.from_mapping({**FAST, "refine_second_start_early": True})).fit(
+            noisy_train, noisy_small)
+        import torch
+
+        assert torch.get_num_threads() == 2  # (the fit gave the caller its threads back)
+    assert early.explicit_model_.metadata["refinement_second_start"]["early"]
+    assert early.metrics_["refinement_early_seconds"] > 0
+    scores = est.explicit_model_.metadata["selection"]["training_error_pct"]
+    early_scores = early.explicit_model_.metadata["selection"]["training_error_pct"]
+    chosen = est.explicit_model_.metadata["selection"]["chosen"]
+    assert early_scores.keys() == scores.keys() and early.explicit_model_.metadata["selection"]["chosen"] == chosen
+    # (candidates far off the records, at 60-300 %, differ by up to ~3e-4 of their score here)
+    assert early_scores[chosen] == pytest.approx(scores[chosen], rel=1e-4)
+    np.testing.assert_allclose(early.explicit_model_.coefficients, est.explicit_model_.coefficients, rtol=1e-4,
+                               atol=1e-6 * np.abs(est.explicit_model_.coefficients).max())
     held = est.explicit_model_.metadata["identification"]["inputs_denoised"]
     assert set(held) == {"training", "smallsignal"} and held["training"]["ug"]["snr_db"] == pytest.approx(40, abs=2)
     assert any("the measured inputs carry noise (ug at 40 dB SNR" in w for w in selection_warnings(est.explicit_model_))
@@ -1860,6 +1879,110 @@ def test_refinements_run_side_by_side_report_from_the_caller_and_stop_together()
     with pytest.raises(IdentificationCancelled):
         _side_by_side(failing, ["good", "good"], cancel, workers=2)
     assert stopped == ["_StoppedBeside", "_StoppedBeside"]
+
+
+def test_a_job_started_beside_joins_the_side_by_side_run_and_stops_with_it():
+    import threading
+    import time
+
+    import torch
+    from threadpoolctl import threadpool_info
+
+    from pisml_ros.ident.estimators import _Beside, _side_by_side
+
+    def blas():
+        return [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+    caller = threading.current_thread()
+    seen: dict = {}
+
+    def early(progress):
+        seen["early"] = (threading.current_thread(), torch.get_num_threads(), blas())
+        for step in range(1, 3):
+            time.sleep(0.1)
+            progress(step / 2, {"loss_early": step})
+        return "early"
+
+    def job(item, progress):
+        seen[item] = (threading.current_thread(), torch.get_num_threads())
+        time.sleep(0.3)
+        progress(1.0, {f"loss_{item}": 1})
+        return item * 10
+
+    reports = []
+    with torch_threads(2):
+        before = blas()
+        beside = _Beside(early)
+        # the caller goes on with one thread while the job holds the other
+        assert torch.get_num_threads() == 1
+        beside.resume_caller()
+        assert torch.get_num_threads() == 2
+        out = _side_by_side(job, [1], lambda fraction, losses: reports.append((fraction, losses)), running=[beside])
+        # its value after the items'; it ran on its own thread with one torch and one BLAS thread
+        assert out == [10, "early"] and seen["early"][0] not in (caller, seen[1][0])
+        assert seen["early"][1] == 1 and set(seen["early"][2]) <= {1} and seen[1][1] == 1
+        assert [f for f, _ in reports] == sorted(f for f, _ in reports) and reports[-1][0] == pytest.approx(1.0)
+        assert reports[-1][1] == {"loss_early": 2, "loss_1": 1}
+        beside.close()  # (again: idempotent)
+        # the caller's threads and the BLAS pools as they were
+        assert torch.get_num_threads() == 2 and blas() == before
+
+        # where the items end first, the caller waits for the job beside without spinning (a loop
+        # holding the GIL would slow that job down)
+        beside = _Beside(lambda progress: time.sleep(1.0) or "late")
+        beside.resume_caller()
+        spent = time.thread_time()
+        assert _side_by_side(lambda item, progress: item, [3], lambda f, l: None, running=[beside]) == [3, "late"]
+        assert time.thread_time() - spent < 0.3
+
+        # a job beside that fails stops the items at their next progress call, and its error is raised
+        def failing(progress):
+            time.sleep(0.2)
+            raise FloatingPointError("early window blew up")
+
+        stopped = []
+
+        def slow(item, progress):
+            try:
+                for _ in range(100):
+                    time.sleep(0.05)
+                    progress(0.0, {})
+            except Exception as err:
+                stopped.append(type(err).__name__)
+                raise
+
+        beside = _Beside(failing)
+        beside.resume_caller()
+        started = time.monotonic()
+        with pytest.raises(FloatingPointError, match="early window blew up"):
+            _side_by_side(slow, ["a"], lambda fraction, losses: None, running=[beside])
+        assert stopped == ["_StoppedBeside"] and time.monotonic() - started < 3.0
+
+        # a cancellation stops the job beside too, and close() restores what it changed
+        stopped.clear()
+
+        def endless(progress):
+            try:
+                while True:
+                    time.sleep(0.05)
+                    progress(0.0, {})
+            except Exception as err:
+                stopped.append(type(err).__name__)
+                raise
+
+        def cancel(fraction, losses):
+            raise IdentificationCancelled("cancelled during refinement")
+
+        beside = _Beside(endless)
+        beside.resume_caller()
+        with pytest.raises(IdentificationCancelled):
+            _side_by_side(slow, ["a"], cancel, running=[beside])
+        assert sorted(stopped) == ["_StoppedBeside", "_StoppedBeside"] and beside.done()
+        # closed by the caller without a side-by-side run (the fit failed before it): stopped, restored
+        stopped.clear()
+        beside = _Beside(endless)
+        beside.close()
+        assert stopped == ["_StoppedBeside"] and torch.get_num_threads() == 2 and blas() == before
 
 
 def test_side_by_side_runs_after_on_the_first_thread_a_job_leaves():

@@ -216,6 +216,19 @@ class IdentConfig:
     # microgrid / weak-line verdicts 29 wrong against 31, 25 of them flagged open against 19 (right
     # ones flagged: 18 against 11 of about 210). Fit median 56.5 s against 38.5 s (2 cores)
     refine_starts: str = "auto"
+    # where both starts run side by side: the second (the noise-compensated backbone, known right
+    # after the backbone) starts beside the hybrid's training instead of after the distillation; the
+    # hybrid, distillation and re-fits then run on one torch thread (on two, their OpenMP team
+    # spin-waits while the start holds a core: the hybrid took 22.6 s instead of 7.2 s) and the limit
+    # search follows the start on its thread. Stop 68 (to buy fit time), 40 dB protocol recordings
+    # 0-12 (`bench/setting_sweep.py run --set refine_second_start_early=true`, bench/sweeps/early-s68.json,
+    # against late-s68.json, the default, measured 18 minutes before): the same verdicts and counts, 7 of 13 models the
+    # same to the bit, the others within ~1e-7 relative (the hybrid on one thread rounds otherwise);
+    # CPU median 94.9 s against 99.4 s, but no wall time saved: median 56.5 s both, per recording -1.0 s
+    # median, 8 of 13 quicker, -4.1 to +21.8 s (recording 3; the same models took 127 s in an earlier
+    # run). The first start, which needs the distillation, stays the longest path, and the threads
+    # contend for the GIL beside the hybrid. Off, so the models stay as they were
+    refine_second_start_early: bool = False
     # a stage of the noisy-data refinement (growing windows, polish) ends early when an accepted step
     # lowers its cost by at most this fraction. Stop 66 (to buy fit time): the windows-of-50 stage's
     # last 5-10 of its 20 evaluations lower its cost by under 1e-6 each (recordings 1, 4, 9 at 40 dB),

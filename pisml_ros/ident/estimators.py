@@ -35,6 +35,8 @@ from .roles import SignalRoles
 from .trajfit import SHOOTING_PARTS_MAX, blas_threads
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
+# the candidate name of the backbone fitted with the noise correction (the second refinement start)
+NOISE_COMPENSATED = "noise-compensated backbone"
 
 
 class IdentificationCancelled(Exception):
@@ -699,11 +701,19 @@ class PISML(_Estimator):
         self.method = "pisml" if use_jacobian else "pisml-nojac"
 
     def fit(self, train: Dataset, smallsignal: Dataset | None = None, callback=None, should_stop=None):
+        train, smallsignal = self._start(train, smallsignal, callback, should_stop)
+        beside: list = []  # a refinement started early (_Beside), ended here whatever happens
+        try:
+            return self._fit(train, smallsignal, beside)
+        finally:
+            for job in beside:
+                job.close()
+
+    def _fit(self, train: Dataset, smallsignal: Dataset | None, beside: list):
         from .distill import distill_residual, merge, sample_envelope
         from .neural import NeuralModel
         from .noise import noise_floor_error
 
-        train, smallsignal = self._start(train, smallsignal, callback, should_stop)
         cfg = self.config
         smallsignal = smallsignal if self.use_jacobian else None
         signals = list(train.state_names) + list(train.input_names)
@@ -723,6 +733,38 @@ class PISML(_Estimator):
         self.backbone_ = backbone
         self.metrics_["backbone_seconds"] = time.monotonic() - started
         self._emit("backbone", 0.05, model=backbone)
+        noisy = _noisy(train)
+        compensated = None
+        if cfg.backbone_noise_correction and noisy:
+            compensated = fit_backbone(train, theta_terms, span=cfg.backbone_span, threshold=cfg.backbone_threshold,
+                                       alpha=cfg.backbone_alpha, noise_correction=True)
+            compensated.metadata = {**backbone.metadata, "backbone_fit": compensated.metadata["method"],
+                                    "noise_std": compensated.metadata["noise_std"]}
+        # candidates are scored on every record given: the small-signal records run freely for 0.1 s
+        # test the equilibrium and the slow modes that 40 ms of training record hardly show.
+        # Measured (40 dB, benchmark recording 2): on the training records alone the pruned
+        # refinement from the merged model won, 1.72 % against 1.76 % (test: 0.47 / 2.13 % IOD /
+        # OOD); the small-signal records' errors, 10.5 % against 3.9 %, pick the other (0.31 / 0.39 %)
+        scoring = concat_datasets([train, smallsignal]) if smallsignal is not None and len(smallsignal) else train
+        verdicts: dict = {}  # stability at the records' rest points, by candidate (selection, refinement start)
+
+        def refine_model(start_model, start_error, progress, growing=None, config=None):
+            errors: dict = {}
+            begin = _couplings_centred(_integrators_restricted(start_model, config or cfg, train), cfg, train)
+            refined = refine_explicit(begin, train, smallsignal, config or cfg, progress, start_error=start_error,
+                                      errors=errors, scoring=scoring, growing=growing)
+            # scored here, on the refinement's own thread: where two run side by side, the first
+            # to end scores its models while the other still runs
+            errors.update(training_errors({name: model for name, model in refined.items() if name not in errors},
+                                          scoring))
+            return refined, errors
+
+        # the limit search needs the records alone: it runs on the first thread a refinement leaves
+        limit_search = _Deferred(lambda: fit_reference_limit(train, cfg.roles, span=cfg.limiter_span)) \
+            if cfg.refine and cfg.limiter_search else None
+        early = self._early_second_start(compensated, backbone, scoring, verdicts, refine_model, limit_search)
+        if early is not None:
+            beside.append(early[1])
         # 2. hybrid: Ξ and N(x, u) trained together through the ODE solver
         started = time.monotonic()
         field = _train_field(self, train, smallsignal, backbone=backbone,
@@ -751,24 +793,15 @@ class PISML(_Estimator):
         library, _ = monomial_basis([*theta_terms, *ext], signals)
         candidates.update(_sparse_refits(explicit, library, train, cfg))
         self.metrics_["refit_seconds"] = time.monotonic() - started
-        if cfg.backbone_noise_correction and _noisy(train):
-            compensated = fit_backbone(train, theta_terms, span=cfg.backbone_span, threshold=cfg.backbone_threshold,
-                                       alpha=cfg.backbone_alpha, noise_correction=True)
-            compensated.metadata = {**backbone.metadata, "backbone_fit": compensated.metadata["method"],
-                                    "noise_std": compensated.metadata["noise_std"]}
-            candidates["noise-compensated backbone"] = compensated
-        # candidates are scored on every record given: the small-signal records run freely for 0.1 s
-        # test the equilibrium and the slow modes that 40 ms of training record hardly show.
-        # Measured (40 dB, benchmark recording 2): on the training records alone the pruned
-        # refinement from the merged model won, 1.72 % against 1.76 % (test: 0.47 / 2.13 % IOD /
-        # OOD); the small-signal records' errors, 10.5 % against 3.9 %, pick the other (0.31 / 0.39 %)
-        scoring = concat_datasets([train, smallsignal]) if smallsignal is not None and len(smallsignal) else train
-        scores = training_errors(candidates, scoring)
+        if compensated is not None:
+            candidates[NOISE_COMPENSATED] = compensated
+        # (the refinement started early has its start's score already)
+        scores = training_errors(candidates, scoring, known={NOISE_COMPENSATED: early[0]} if early else None)
         hold = hold_error(scoring)
         # what the noise alone leaves: the yardstick of the rescue and of the selection's caution
         noise_floor = noise_floor_error(scoring)
-        verdicts: dict = {}  # stability at the records' rest points, by candidate (selection, refinement start)
-        noisy = _noisy(train)
+        if early is not None:
+            early[1].resume_caller()  # the refinement shares the threads out again
         if cfg.refine:
             # refinement takes most of the time: the best explicit model so far goes out first
             preliminary = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold, tolerance=0.0)
@@ -779,16 +812,7 @@ class PISML(_Estimator):
             explicit.metadata["refinement_starts"] = list(starts)
 
             def refine_from(start, progress, growing=None, config=None):
-                errors: dict = {}
-                begin = _couplings_centred(_integrators_restricted(candidates[start], config or cfg, train), cfg, train)
-                refined = refine_explicit(begin, train, smallsignal, config or cfg, progress,
-                                          start_error=scores[start], errors=errors, scoring=scoring,
-                                          growing=growing)
-                # scored here, on the refinement's own thread: where two run side by side, the first
-                # to end scores its models while the other still runs
-                errors.update(training_errors({name: model for name, model in refined.items() if name not in errors},
-                                              scoring))
-                return refined, errors
+                return refine_model(candidates[start], scores[start], progress, growing, config)
 
             def add(k, refined, errors, suffix=None, start=None):
                 if suffix is None:
@@ -804,20 +828,27 @@ class PISML(_Estimator):
             shared = term_set(candidates[starts[0]].terms, signals).thread_safe_gradient()
             # on clean data the second half of the refinement's progress is kept for the fallback below
             share = 0.28 if noisy or not cfg.refine_growing_windows else 0.14
-            # the limit search needs the records alone: it runs on the first thread a refinement leaves
-            limit_search = _Deferred(lambda: fit_reference_limit(train, cfg.roles, span=cfg.limiter_span)) \
-                if cfg.limiter_search else None
+            running = []
+            if early is not None:
+                if starts[1:] == [NOISE_COMPENSATED]:
+                    running = [early[1]]
+                else:  # (not met: the same verdicts and score chose it early)
+                    early[1].close()
             if _both_starts(cfg) or len(starts) == 1 or not shared:
-                outcomes = _side_by_side(refine_from, starts, lambda fraction, losses: self._emit(
-                    "refinement", 0.7 + share * fraction, losses=losses),
-                    after=limit_search.run if limit_search is not None else None)
+                outcomes = _side_by_side(refine_from, starts[:len(starts) - len(running)],
+                                         lambda fraction, losses: self._emit("refinement", 0.7 + share * fraction,
+                                                                             losses=losses),
+                                         after=limit_search.run if limit_search is not None else None, running=running)
                 for k, outcome in enumerate(outcomes):
                     add(k, *outcome)
                 threads = _threads_for(len(starts))
                 if len(starts) > 1:
                     # (on one thread, where the gradients are not thread-safe, the two ran one after the other)
                     explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": True,
-                                                                    "side_by_side": threads > 1}
+                                                                    "side_by_side": threads > 1,
+                                                                    "early": bool(running)}
+                if running:
+                    self.metrics_["refinement_early_seconds"] = running[0].seconds
                 self.metrics_["refinement_threads"] = float(threads)
             else:
                 # the first start alone on every thread; the second only where the first's family
@@ -865,6 +896,33 @@ class PISML(_Estimator):
         self.metrics_["hybrid_parameters"] = float(hybrid.n_parameters)
         self._emit("explicit", 1.0, model=explicit)
         return self._finish(explicit, explicit)
+
+    def _early_second_start(self, compensated, backbone, scoring, verdicts, refine_model, limit_search=None):
+        """``(score, job)``: the refinement from the noise-compensated backbone started now, beside the
+        hybrid's training, where it will be the second refinement start (``IdentConfig.refine_starts``
+        runs both side by side, torch has two threads, and it has an equilibrium at every rest point
+        of the records, :func:`_refinement_starts`) and ``IdentConfig.refine_second_start_early`` is
+        set; else None. That start needs the records and the backbone alone, and the hybrid's
+        training, the distillation and the re-fits leave a core partly idle. ``limit_search`` (a
+        :class:`_Deferred`, or None) runs on the job's thread after the refinement: that thread
+        comes free before the first start's."""
+        cfg = self.config
+        if compensated is None or not (cfg.refine and cfg.refine_second_start_early and _both_starts(cfg)
+                                       and _threads_for(2) >= 2):
+            return None
+        points = backbone.metadata.get("reference_points") or []
+        score = training_errors({NOISE_COMPENSATED: compensated}, scoring)[NOISE_COMPENSATED]
+        if not _with_equilibria([NOISE_COMPENSATED], {NOISE_COMPENSATED: compensated}, {NOISE_COMPENSATED: score},
+                                points, verdicts):
+            return None
+
+        def job(progress):
+            outcome = refine_model(compensated, score, progress)
+            if limit_search is not None:
+                limit_search.run()
+            return outcome
+
+        return score, _Beside(job, "pisml-refine-early")
 
     def _clean_growing_fallback(self, explicit, candidates, scores, verdicts, hold, starts, refine_from, add):
         """On clean data, where the model the selection would take does not reproduce the records
@@ -1120,7 +1178,8 @@ def _threads_for(jobs: int) -> int:
 
 
 def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], None],
-                  workers: int | None = None, after: Callable[[], None] | None = None) -> list:
+                  workers: int | None = None, after: Callable[[], None] | None = None,
+                  running: list | tuple = ()) -> list:
     """``[job(item, progress) for item in items]``, the jobs in threads side by side where torch has
     threads to share out (:func:`_threads_for`), else one after the other.
 
@@ -1129,8 +1188,11 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
     ``workers`` overrides how many run at once. ``after()``, if given, runs on the first thread a
     job leaves free (after the jobs where they run one after the other), and has run when this
     returns: work of the caller's that needs no job's result (:class:`_Deferred`), done while the
-    last job still runs, not after it on one core. An exception from ``report`` (cancellation) or
-    from a job stops the other jobs at their next progress call and is raised here. Threads, not
+    last job still runs, not after it on one core. ``running``: jobs already started on threads of
+    their own (:class:`_Beside`), each counted as one of the jobs side by side (the threads are
+    shared out over ``items`` and them) and in the mean fraction; their values follow the items'.
+    An exception from ``report`` (cancellation) or from a job stops the other jobs (``running``
+    too) at their next progress call and is raised here. Threads, not
     processes: most of the work is in torch calls that release the GIL (scipy's BLAS ``dsyrk`` in
     the normal equations holds it), and the jobs share the data. Measured on the 40 dB benchmark
     recording (2 vCPUs, before the syrk): the two refinements took 134 s one after the other (torch
@@ -1141,8 +1203,11 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
 
     import torch
 
-    workers = _threads_for(len(items)) if workers is None else max(1, min(workers, len(items)))
-    if workers == 1:
+    running = list(running)
+    if workers is None:
+        workers = _threads_for(len(items) + len(running)) - len(running) if running else _threads_for(len(items))
+    workers = max(1, min(workers, len(items)))
+    if workers == 1 and not running:
         results = [job(item, lambda fraction, losses, k=k: report((k + fraction) / len(items), losses))
                    for k, item in enumerate(items)]
         if after is not None:
@@ -1164,11 +1229,12 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
         return job(item, lambda fraction, losses: progress(k, fraction, losses))
 
     threads = torch.get_num_threads()
+    share = max(1, threads // (workers + len(running)))
     # torch sizes a thread's intra-op pool from its global setting when the thread first uses it:
     # the pool's threads start with their share; the caller's setting is restored after
-    torch.set_num_threads(max(1, threads // workers))
+    torch.set_num_threads(share)
     try:
-        with blas_threads(max(1, threads // workers)), ThreadPoolExecutor(workers, "pisml-refine") as pool:
+        with blas_threads(share), ThreadPoolExecutor(workers, "pisml-refine") as pool:
             futures = [pool.submit(run, k, item) for k, item in enumerate(items)]
             if after is not None:
                 # queued behind the jobs: it starts on the first thread one of them leaves
@@ -1177,20 +1243,132 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
                 reported = -1.0
                 while True:
                     done, pending = wait(futures, timeout=0.5, return_when=FIRST_EXCEPTION)
+                    waiting = [beside for beside in running if not beside.done()]
+                    if not pending and waiting:
+                        # (wait() returns at once on finished futures: a loop on it alone would hold the GIL)
+                        waiting[0].wait(0.5)
                     failed = [f.exception() for f in done if f.exception() is not None]
+                    failed += [beside.error for beside in running if beside.error is not None]
                     if failed:
                         raise failed[0]
                     with lock:
-                        fraction, losses = sum(fractions) / len(items), dict(latest)
+                        fraction = (sum(fractions) + sum(beside.fraction for beside in running)) / \
+                            (len(items) + len(running))
+                        losses = dict(latest)
+                    for beside in running:
+                        losses.update(beside.losses())
                     if fraction > reported:
                         report(fraction, losses)  # may raise: cancelled
                         reported = fraction
-                    if not pending:
-                        return [f.result() for f in futures[:len(items)]]
+                    if not pending and all(beside.done() for beside in running):
+                        return [f.result() for f in futures[:len(items)]] + [beside.value() for beside in running]
             finally:
                 stop.set()  # the jobs still running end at their next progress call
+                for beside in running:
+                    beside.stop()
     finally:
         torch.set_num_threads(threads)
+        for beside in running:
+            beside.close()  # its BLAS limit after this function's own, which restores to it
+
+
+class _Beside:
+    """``job(progress)`` started now on a thread of its own with one torch and one BLAS thread,
+    while the caller goes on with the rest (:func:`_side_by_side` takes it as one of its jobs).
+
+    ``progress(fraction, losses)`` keeps the job's latest report (``fraction``, :meth:`losses`) for
+    the caller to pass on: the callers' callbacks are not thread-safe. :meth:`stop` ends the job at
+    its next progress call; :meth:`value` waits for it and returns its value, or raises what it
+    raised. The BLAS pools stay at one thread until :meth:`close` (threadpoolctl's limit is
+    process-wide), and the caller's torch at one until :meth:`resume_caller` (torch's is per thread).
+    """
+
+    def __init__(self, job: Callable, name: str = "pisml-beside"):
+        import threading
+
+        import torch
+
+        self.fraction = 0.0
+        self.error: BaseException | None = None
+        self.seconds = 0.0
+        self._job = job
+        self._latest: dict = {}
+        self._value = None
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._finished = threading.Event()
+        self._caller_threads = torch.get_num_threads()
+        self._blas = blas_threads(1, user_api="blas")
+        self._blas.__enter__()
+        ready = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(ready,), name=name, daemon=True)
+        self._thread.start()
+        ready.wait()
+        # the caller goes on with one thread too, until resume_caller(): with two, its OpenMP team
+        # spin-waits at every barrier while this job holds a core (measured, 40 dB recording 1 on
+        # 2 cores: the hybrid's training took 22.6 s instead of 7.2 s)
+        torch.set_num_threads(1)
+        self._caller_resumed = False
+
+    def _run(self, ready) -> None:
+        import torch
+
+        torch.set_num_threads(1)
+        ready.set()
+        started = time.monotonic()
+        try:
+            self._value = self._job(self._progress)
+        except BaseException as err:  # raised again by value()
+            self.error = err
+        self.seconds = time.monotonic() - started
+        self._finished.set()
+
+    def _progress(self, fraction: float, losses: dict) -> None:
+        if self._stopping.is_set():
+            raise _StoppedBeside()
+        with self._lock:
+            self.fraction = fraction
+            self._latest.update(losses)
+
+    def losses(self) -> dict:
+        with self._lock:
+            return dict(self._latest)
+
+    def done(self) -> bool:
+        return self._finished.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait up to ``timeout`` seconds for the job to end; whether it has."""
+        return self._finished.wait(timeout)
+
+    def resume_caller(self) -> None:
+        """The caller's torch threads as they were before this job started (call from the caller)."""
+        import torch
+
+        if not self._caller_resumed:
+            torch.set_num_threads(self._caller_threads)
+            self._caller_resumed = True
+
+    def stop(self) -> None:
+        """End the job at its next progress call and wait for it (its value is dropped)."""
+        self._stopping.set()
+        self._thread.join()
+
+    def close(self) -> None:
+        """:meth:`stop` where it still runs, the caller's threads resumed and the BLAS pools' limit
+        lifted; idempotent (call from the caller)."""
+        if not self.done():
+            self.stop()
+        self.resume_caller()
+        if self._blas is not None:
+            self._blas.__exit__(None, None, None)
+            self._blas = None
+
+    def value(self):
+        self._thread.join()
+        if self.error is not None:
+            raise self.error
+        return self._value
 
 
 class _Deferred:
@@ -1398,7 +1576,7 @@ def _refinement_starts(candidates: dict, scores: dict, points: list, verdicts: d
     useful = [name for name in names if scores[name] < HOPELESS_ERROR_PCT] or names
     eligible = _with_equilibria(useful, candidates, scores, points, verdicts)
     starts = [min(eligible or useful, key=lambda name: scores[name])]
-    starts += _with_equilibria([name for name in candidates if name == "noise-compensated backbone"],
+    starts += _with_equilibria([name for name in candidates if name == NOISE_COMPENSATED],
                                candidates, scores, points, verdicts)
     return starts
 
@@ -1534,13 +1712,15 @@ def training_error(model, train: Dataset) -> float:
     return training_errors({0: model}, train)[0]
 
 
-def training_errors(models: dict, train: Dataset) -> dict:
+def training_errors(models: dict, train: Dataset, known: dict | None = None) -> dict:
     """:func:`training_error` of each of ``models`` (by key). Explicit models over the same terms,
     states and inputs (a refinement's family, say) run in one vectorised simulation: a free run is
     a few thousand small vector-field calls whose cost is per call, not per row (measured: ~0.7 s
-    per model on the 40 dB benchmark's training + small-signal records)."""
+    per model on the 40 dB benchmark's training + small-signal records). ``known``: errors already
+    had, by key, taken as they are (in the order the keys would have had)."""
     from ..analysis.metrics import relative_error
 
+    known = known or {}
     started = _rest_started(train)
     groups: dict = {}
     for key, model in models.items():
@@ -1548,7 +1728,11 @@ def training_errors(models: dict, train: Dataset) -> dict:
             if isinstance(model, ExplicitModel) and not model.hidden_state_names else ("single", key)
         groups.setdefault(shared, []).append(key)
     out = {}
-    for keys in groups.values():
+    for group in groups.values():
+        out.update({key: known[key] if key in known else None for key in group})
+        keys = [key for key in group if key not in known]
+        if not keys:
+            continue
         system = models[keys[0]] if len(keys) == 1 else _Stacked([models[k] for k in keys])
         try:
             pred = system.simulate(started)

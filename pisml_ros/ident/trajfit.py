@@ -51,9 +51,10 @@ DEFECTIVE_OVERLAP = 1e-6
 SHOOTING_PARTS_MAX = 2
 
 
-def blas_threads(limit: int | None):
+def blas_threads(limit: int | None, user_api: str | None = None):
     """A context with at most ``limit`` threads in the BLAS pools (threadpoolctl; without it, or
-    with ``limit`` None, the pools keep their size)."""
+    with ``limit`` None, the pools keep their size); ``user_api`` "blas" leaves the OpenMP pools
+    alone (threadpoolctl sets those for the calling thread only)."""
     import contextlib
 
     if not limit:
@@ -62,7 +63,7 @@ def blas_threads(limit: int | None):
         from threadpoolctl import threadpool_limits
     except ImportError:
         return contextlib.nullcontext()
-    return threadpool_limits(limits=limit)
+    return threadpool_limits(limits=limit, user_api=user_api)
 
 
 def _gram_adder(single: bool = False):
