@@ -1821,6 +1821,21 @@ def test_a_fit_is_reproducible(train, small):
     np.testing.assert_array_equal(first.explicit_model_.coefficients, second.explicit_model_.coefficients)
 
 
+def _report_until_stopped(progress, stopped: list, steps: int | None = 100) -> None:
+    """A job's progress reports every 0.05 s, ``steps`` of them (None: until one raises); the name
+    of what a report raised goes to ``stopped``, and is raised again."""
+    import itertools
+    import time
+
+    try:
+        for _ in itertools.count() if steps is None else range(steps):
+            time.sleep(0.05)
+            progress(0.0, {})
+    except Exception as err:
+        stopped.append(type(err).__name__)
+        raise
+
+
 def test_refinements_run_side_by_side_report_from_the_caller_and_stop_together():
     import threading
     import time
@@ -1856,13 +1871,7 @@ def test_refinements_run_side_by_side_report_from_the_caller_and_stop_together()
         if item == "bad":
             time.sleep(0.3)
             raise FloatingPointError("window blew up")
-        try:
-            for _ in range(100):
-                time.sleep(0.05)
-                progress(0.0, {})
-        except Exception as err:
-            stopped.append(type(err).__name__)
-            raise
+        _report_until_stopped(progress, stopped)
         return "finished"
 
     started = time.monotonic()
@@ -1943,13 +1952,7 @@ def test_a_job_started_beside_joins_the_side_by_side_run_and_stops_with_it():
         stopped = []
 
         def slow(item, progress):
-            try:
-                for _ in range(100):
-                    time.sleep(0.05)
-                    progress(0.0, {})
-            except Exception as err:
-                stopped.append(type(err).__name__)
-                raise
+            _report_until_stopped(progress, stopped)
 
         beside = _Beside(failing)
         beside.resume_caller()
@@ -1962,13 +1965,7 @@ def test_a_job_started_beside_joins_the_side_by_side_run_and_stops_with_it():
         stopped.clear()
 
         def endless(progress):
-            try:
-                while True:
-                    time.sleep(0.05)
-                    progress(0.0, {})
-            except Exception as err:
-                stopped.append(type(err).__name__)
-                raise
+            _report_until_stopped(progress, stopped, steps=None)
 
         def cancel(fraction, losses):
             raise IdentificationCancelled("cancelled during refinement")
