@@ -1264,12 +1264,11 @@ def _side_by_side(job: Callable, items: list, report: Callable[[float, dict], No
                         return [f.result() for f in futures[:len(items)]] + [beside.value() for beside in running]
             finally:
                 stop.set()  # the jobs still running end at their next progress call
-                for beside in running:
-                    beside.stop()
     finally:
         torch.set_num_threads(threads)
         for beside in running:
-            beside.close()  # its BLAS limit after this function's own, which restores to it
+            # stopped where it still runs, and its BLAS limit lifted after this function's own, which restores to it
+            beside.close()
 
 
 class _Beside:
