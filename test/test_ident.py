@@ -955,6 +955,22 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     assert pruning["budget"] == pytest.approx(0.01 * 4812 / samples)
     assert np.all(rounds["pruned +1 %"].coefficients[3:] == 0)
     np.testing.assert_allclose(rounds["pruned +1 %"].coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
+    # the long-window branch: the refined model re-fitted in the polish's longest windows, then pruned
+    # and polished there, a family of its own beside the first (which it leaves as it was)
+    from pisml_ros.ident.estimators import LONG_BRANCH_SUFFIX, _refinement_family
+
+    branched = refine_explicit(spurious, train, small, IdentConfig.from_mapping(
+        {**cfg.to_dict(), "refine_prune_rounds": 3, "refine_long_branch": True, "refine_long_branch_evaluations": 3}))
+    assert set(branched) == {"refined", "pruned +1 %", "refined at long windows", "pruned +1 % at long windows"}
+    assert {_refinement_family(name) for name in branched} == {"", LONG_BRANCH_SUFFIX}
+    for name in ("refined", "pruned +1 %"):
+        np.testing.assert_array_equal(branched[name].coefficients, rounds[name].coefficients)
+    long_stages = branched["refined at long windows"].metadata["refinement"]["stages"]
+    assert [stage["window"] for stage in long_stages] == [10, 50, 100] and long_stages[-1]["evaluations"] <= 3
+    long_pruned = branched["pruned +1 % at long windows"]
+    assert long_pruned.metadata["pruning"]["polish_windows"] == [100]
+    assert np.all(long_pruned.coefficients[3:] == 0)
+    np.testing.assert_allclose(long_pruned.coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
     # ranked by degree (the products go first) the rounds come to the same support here
     ranked = refine_explicit(spurious, train, small, IdentConfig.from_mapping(
         {**cfg.to_dict(), "refine_prune_rounds": 3, "refine_prune_degree_preference": 10}))

@@ -1161,7 +1161,7 @@ def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict
     operating point where the records sat at rest (an equilibrium there, no mode growing faster than
     ``cfg.selection_unstable_rate``, every mode decaying where the small-signal records sat)."""
     name, misfits = _would_choose_misfits(template, candidates, scores, cfg, verdicts, hold)
-    return _refinement_family(name) == "" and misfits == 0
+    return _refinement_family(name) in ("", LONG_BRANCH_SUFFIX) and misfits == 0
 
 
 def _both_starts(cfg: IdentConfig) -> bool:
@@ -1407,6 +1407,9 @@ class _Deferred:
 class _StoppedBeside(Exception):
     """Raised in a job of :func:`_side_by_side` when another job failed or the run was cancelled."""
 
+
+# the name suffix of the candidates of a refinement's long-window branch (IdentConfig.refine_long_branch)
+LONG_BRANCH_SUFFIX = " at long windows"
 
 # the names of the pruned candidates: "pruned +B %" (round 1, or a one-stage budget), "pruned +B % xR"
 # (the R-th prune round), then the refinement start's suffix
@@ -1931,6 +1934,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     # a later prune round starts next to a minimum of a wider support: the longest windows suffice
     repolish = polish[-1:]
     total = sum(n for _, n in stages + polish) + (cfg.refine_prune_rounds - 1) * sum(n for _, n in repolish)
+    if cfg.refine_long_branch and repolish:
+        total += cfg.refine_long_branch_evaluations + cfg.refine_prune_rounds * sum(n for _, n in repolish)
     done, used = [0], [0]  # evaluations budgeted (progress) and spent
     lambda_jac = 1.0 if smallsignal is not None else 0.0
     # with a degree preference above 1 the rounds drop higher-degree terms ahead of lower-degree
@@ -2009,41 +2014,65 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     # a fraction of the cost for the reference number of samples (IdentConfig.refine_prune_reference_samples)
     budget = cfg.refine_prune_budgets[0] * (cfg.refine_prune_reference_samples / max(samples, 1)
                                             if cfg.refine_prune_reference_samples > 0 else 1.0)
-    polished = result
-    for round_ in range(1, cfg.refine_prune_rounds + 1):
-        # each round prunes the last round's polished model (its quadratic cost model is taken at a
-        # minimum of its own support, unlike the first round's)
-        if polished is None or polished.hessian is None:
-            break
-        base = polished
-        # every equation keeps a term: an empty one freezes its state (no isolated equilibrium)
-        rise, coef = backward_elimination(base.coefficients, base.hessian, base.support, [budget * base.cost],
-                                          order_weights[base.support // model.n_states],
-                                          groups=base.support % model.n_states)[0]
-        if round_ > 1 and np.count_nonzero(coef) == np.count_nonzero(base.coefficients):
-            break  # nothing more to drop: another polish would re-fit the same support
-        polish_started, polish_used = time.monotonic(), used[0]
-        schedule = polish if round_ == 1 else repolish
-        polish_log: list = []
+
+    def prune_rounds(first, polish, repolish, suffix):
+        """Prune-and-polish rounds from the fit ``first`` (round 1 re-fitted in ``polish``, later rounds
+        in ``repolish``), their candidates named with ``suffix``; returns the last polished fit."""
+        polished = first
+        for round_ in range(1, cfg.refine_prune_rounds + 1):
+            # each round prunes the last round's polished model (its quadratic cost model is taken at a
+            # minimum of its own support, unlike the first round's)
+            if polished is None or polished.hessian is None:
+                break
+            base = polished
+            # every equation keeps a term: an empty one freezes its state (no isolated equilibrium)
+            rise, coef = backward_elimination(base.coefficients, base.hessian, base.support, [budget * base.cost],
+                                              order_weights[base.support // model.n_states],
+                                              groups=base.support % model.n_states)[0]
+            if round_ > 1 and np.count_nonzero(coef) == np.count_nonzero(base.coefficients):
+                break  # nothing more to drop: another polish would re-fit the same support
+            polish_started, polish_used = time.monotonic(), used[0]
+            schedule = polish if round_ == 1 else repolish
+            polish_log: list = []
+            try:
+                polished = run(coef, schedule, cfg.refine_stability_weight, rest_weight=cfg.refine_rest_weight,
+                               log=polish_log, damping=cfg.refine_polish_damping) if schedule else None
+            except (np.linalg.LinAlgError, FloatingPointError) as err:
+                model.metadata.setdefault("refinement_errors", []).append(f"polish: {type(err).__name__}: {err}")
+                polished = None
+            pruning = {"budget": budget, "nominal_budget": cfg.refine_prune_budgets[0], "training_samples": samples,
+                       "reference_samples": cfg.refine_prune_reference_samples,
+                       "round": round_, "predicted_cost_rise": rise / max(base.cost, 1e-300),
+                       "polish_windows": [w for w, _ in schedule],
+                       "polish_cost": None if polished is None else polished.cost,
+                       "polish_evaluations": used[0] - polish_used, "polish_seconds": time.monotonic() - polish_started,
+                       "polish_rest_weight": cfg.refine_rest_weight, "rk4_substeps": sorted(substeps_used or ()),
+                       "polish_stages": polish_log}
+            # named by the nominal budget: the same names whatever the records' length
+            name = _prune_round_name(f"{100 * cfg.refine_prune_budgets[0]:g}", round_, suffix)
+            out[name] = ExplicitModel(model.state_names, model.input_names, model.terms,
+                                      coef if polished is None else polished.coefficients,
+                                      {**meta, "pruning": pruning, **_with_covariance(polished)})
+        return polished
+
+    polished = prune_rounds(result, polish, repolish, "")
+    if cfg.refine_long_branch and repolish:
+        # a second branch: the refined model re-fitted in the polish's longest windows first, then
+        # pruned and polished there (IdentConfig.refine_long_branch)
+        long_log: list = []
         try:
-            polished = run(coef, schedule, cfg.refine_stability_weight, rest_weight=cfg.refine_rest_weight,
-                           log=polish_log, damping=cfg.refine_polish_damping) if schedule else None
+            long = run(result.coefficients, [(repolish[0][0], cfg.refine_long_branch_evaluations)],
+                       cfg.refine_growing_stability_weight, substeps=cfg.refine_growing_substeps, log=long_log)
         except (np.linalg.LinAlgError, FloatingPointError) as err:
-            model.metadata.setdefault("refinement_errors", []).append(f"polish: {type(err).__name__}: {err}")
-            polished = None
-        pruning = {"budget": budget, "nominal_budget": cfg.refine_prune_budgets[0], "training_samples": samples,
-                   "reference_samples": cfg.refine_prune_reference_samples,
-                   "round": round_, "predicted_cost_rise": rise / max(base.cost, 1e-300),
-                   "polish_windows": [w for w, _ in schedule],
-                   "polish_cost": None if polished is None else polished.cost,
-                   "polish_evaluations": used[0] - polish_used, "polish_seconds": time.monotonic() - polish_started,
-                   "polish_rest_weight": cfg.refine_rest_weight, "rk4_substeps": sorted(substeps_used or ()),
-                   "polish_stages": polish_log}
-        # named by the nominal budget: the same names whatever the records' length
-        name = _prune_round_name(f"{100 * cfg.refine_prune_budgets[0]:g}", round_)
-        out[name] = ExplicitModel(model.state_names, model.input_names, model.terms,
-                                  coef if polished is None else polished.coefficients,
-                                  {**meta, "pruning": pruning, **_with_covariance(polished)})
+            model.metadata.setdefault("refinement_errors", []).append(f"long branch: {type(err).__name__}: {err}")
+            long = None
+        if long is not None:
+            out["refined" + LONG_BRANCH_SUFFIX] = ExplicitModel(
+                model.state_names, model.input_names, model.terms, long.coefficients,
+                {**meta, "refinement": {**meta["refinement"], "stages": growing_log + long_log},
+                 **_with_covariance(long)})
+            if long.hessian is not None:
+                prune_rounds(long, repolish, repolish, LONG_BRANCH_SUFFIX)
     if progress:  # stages that converged early leave evaluations of their budget unused
         progress(1.0, {"refine_cost": result.cost if polished is None else polished.cost})
     return out
