@@ -21,7 +21,7 @@ from pisml_ros.signals import INPUT_NAMES, SCORED_STATES, STATE_NAMES
 
 # a small, fast PISML configuration: the pipeline end to end in seconds
 FAST = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
-        "refine_growing_evaluations": "2,2,2", "refine_polish_evaluations": "2,2",
+        "refine_growing_evaluations": "2,2,2", "refine_polish_evaluations": "2,2", "refine_long_branch_evaluations": 2,
         "distill_max_terms": 2}
 
 
@@ -403,7 +403,8 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     # a family of its own: its pruned models are judged against its own refined model
     from pisml_ros.ident.estimators import _refinement_family
 
-    assert {_refinement_family(name) for name in rescue["added"]} == {" with growing prior"}
+    assert {_refinement_family(name) for name in rescue["added"]} == {" with growing prior",
+                                                                      " at long windows with growing prior"}
     assert rescue["added"] == sorted(name for name in noisy.candidates_ if name.endswith(" with growing prior"))
     assert "refined with growing prior" in rescue["added"] and set(rescue["added"]) <= set(scored)
     weight = IdentConfig().refine_rescue_stability_weight
@@ -472,11 +473,15 @@ def test_noisy_measured_inputs_are_held_at_their_means_where_they_are_constant(t
 def test_both_refinement_starts_run_where_torch_has_a_second_thread():
     from pisml_ros.ident.estimators import _both_starts
 
+    auto = IdentConfig.from_mapping({"refine_starts": "auto"})
     with torch_threads(1):
-        assert not _both_starts(IdentConfig()) and _both_starts(IdentConfig.from_mapping({"refine_starts": "both"}))
+        assert not _both_starts(auto) and _both_starts(IdentConfig.from_mapping({"refine_starts": "both"}))
     with torch_threads(2):
-        assert _both_starts(IdentConfig()) and IdentConfig().refine_starts == "auto"
-        assert not _both_starts(IdentConfig.from_mapping({"refine_starts": "fallback"}))
+        assert _both_starts(auto)
+        # the default since stop 69: the first start alone on every thread, its long-window branch beside
+        # its own prune rounds, the second start where the first's families give no consistent model
+        assert not _both_starts(IdentConfig()) and IdentConfig().refine_starts == "fallback"
+        assert IdentConfig().refine_long_branch
 
 
 def test_a_fit_on_noisy_inputs_holds_them_and_says_so(train, small):
@@ -486,8 +491,9 @@ def test_a_fit_on_noisy_inputs_holds_them_and_says_so(train, small):
     noisy_train = add_measurement_noise(train, 40.0, seed=6, include_inputs=True)
     noisy_small = add_measurement_noise(small, 40.0, seed=7, include_inputs=True)
     with torch_threads(2):
-        est = make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(noisy_train, noisy_small)
-    # the default on two threads: the second start's family refined side by side, scored and competing
+        est = make_estimator("pisml", IdentConfig.from_mapping({**FAST, "refine_starts": "auto"})).fit(
+            noisy_train, noisy_small)
+    # "auto" on two threads: the second start's family refined side by side, scored and competing
     second = est.explicit_model_.metadata["refinement_second_start"]
     assert second["run"] and second["side_by_side"] and est.metrics_["refinement_threads"] == 2.0
     assert f"refined from {second['start']}" in est.explicit_model_.metadata["selection"]["training_error_pct"]
@@ -495,8 +501,8 @@ def test_a_fit_on_noisy_inputs_holds_them_and_says_so(train, small):
     # started beside the hybrid's training instead: the same candidates, the same choice, the
     # numbers within rounding (the hybrid trains on one thread meanwhile)
     with torch_threads(2):
-        early = make_estimator("pisml", IdentConfig.from_mapping({**FAST, "refine_second_start_early": True})).fit(
-            noisy_train, noisy_small)
+        early = make_estimator("pisml", IdentConfig.from_mapping(
+            {**FAST, "refine_starts": "auto", "refine_second_start_early": True})).fit(noisy_train, noisy_small)
         import torch
 
         assert torch.get_num_threads() == 2  # (the fit gave the caller its threads back)
@@ -911,7 +917,7 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     model = ExplicitModel(("xa", "xb"), ("v",), ["xa", "xb", "v", "xa*xb"], start)
     cfg = IdentConfig.from_mapping({"refine_growing_windows": "10,50", "refine_growing_evaluations": "10,8",
                                     "refine_polish_windows": "100", "refine_polish_evaluations": "6",
-                                    "refine_prune_budgets": "0.01"})
+                                    "refine_prune_budgets": "0.01", "refine_long_branch": False})
     progress = []
     out = refine_explicit(model, train, small, cfg, progress=lambda fraction, losses: progress.append(fraction))
     assert set(out) == {"refined", "pruned +1 %"}
@@ -966,7 +972,7 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     for name in ("refined", "pruned +1 %"):
         np.testing.assert_array_equal(branched[name].coefficients, rounds[name].coefficients)
     long_stages = branched["refined at long windows"].metadata["refinement"]["stages"]
-    assert [stage["window"] for stage in long_stages] == [10, 50, 100] and long_stages[-1]["evaluations"] <= 3
+    assert [stage["window"] for stage in long_stages] == [100] and long_stages[0]["evaluations"] <= 3
     long_pruned = branched["pruned +1 % at long windows"]
     assert long_pruned.metadata["pruning"]["polish_windows"] == [100]
     assert np.all(long_pruned.coefficients[3:] == 0)
@@ -1190,6 +1196,30 @@ def test_a_mode_that_does_not_decay_where_the_small_signal_records_sat_is_incons
 
     assert growth_rates_at_points(candidates["zero mode"], training) == pytest.approx([-1e-3, -1e-3])
     assert growth_rates_at_points(candidates["zero mode"], training, zero_mode_below=0.01) == [None, None]
+
+
+def test_an_equilibrium_away_from_the_rest_state_is_inconsistent_with_a_rest_offset():
+    """``selection_rest_offset``: where a record sat still, the model's equilibrium must lie within
+    that (relative) of the rest state; off (inf) by default."""
+    from pisml_ros.ident import IdentConfig
+    from pisml_ros.ident.estimators import _inconsistent_points, _rest_offsets
+
+    # x' = a - x, y' = u - y: the equilibrium (a, u), stable, with the rest states at (1, u)
+    def model(a):
+        return ExplicitModel(("x", "y"), ("u",), ["1", "x", "y", "u"],
+                             np.array([[a, 0.0], [-1.0, 0.0], [0.0, -1.0], [0.0, 1.0]]), {})
+
+    candidates = {"at rest": model(1.02), "away": model(1.5)}
+    points = [{"inputs": [u], "state": [1.0, u]} for u in (0.8, 1.2)]
+    cache: dict = {}
+    for u, offset in zip((0.8, 1.2), _rest_offsets("away", candidates, points, cache)):
+        assert offset == pytest.approx(0.5 / np.hypot(1.0, u))
+    assert [_inconsistent_points(name, candidates, points, cache, 1.0) for name in candidates] == [0, 0]
+    assert [_inconsistent_points(name, candidates, points, cache, 1.0, rest_offset=0.1)
+            for name in candidates] == [0, 2]
+    assert IdentConfig().selection_rest_offset == 0.1  # (the default since stop 69)
+    with pytest.raises(ConfigError, match="selection_rest_offset"):
+        IdentConfig.from_mapping({"selection_rest_offset": -1})
 
 
 def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
@@ -1700,8 +1730,10 @@ def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_
               for name in ("refined unrestricted", "refined from noise-compensated backbone unrestricted")
               if name in est.candidates_]
     assert starts[0] in ("distilled", *[n for n in est.candidates_ if n.startswith("re-fit")])
-    assert {estimators._refinement_family(name) for name in record["added"]} == {
-        " unrestricted", *[f" from {s} unrestricted" for s in starts[1:]]}
+    # (each start with its long-window branch's family, IdentConfig.refine_long_branch)
+    suffixes = {" unrestricted", *[f" from {s} unrestricted" for s in starts[1:]]}
+    assert {estimators._refinement_family(name) for name in record["added"]} == \
+        suffixes | {estimators.LONG_BRANCH_SUFFIX + suffix for suffix in suffixes}
     assert set(record["added"]) <= set(meta["selection"]["training_error_pct"])
     assert est.metrics_["refinement_unrestricted"] == 1.0
     # the families' filter rows are free: the refined model keeps terms the physics mask rejects

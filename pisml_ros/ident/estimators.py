@@ -152,6 +152,29 @@ def _growth_rates(name: str, candidates: dict, points: list, cache: dict) -> lis
     return cache[name]
 
 
+def _rest_offsets(name: str, candidates: dict, points: list, cache: dict) -> list:
+    """For each of ``points``, how far candidate ``name``'s equilibrium there (found as the analysis
+    finds it, from the rest points) lies from the rest state, ‖x_eq − x_rest‖ / ‖x_rest‖ (as
+    :func:`~pisml_ros.analysis.operating_point.rest_drift` measures a drift); None where it has
+    none. Cached by name."""
+    key = (name, "rest offsets")
+    if key not in cache:
+        model = candidates[name]
+        probe = ExplicitModel(model.state_names, model.input_names, model.terms, model.coefficients,
+                              {"reference_points": list(points)})
+        offsets = []
+        for point in points:
+            rest = np.asarray(point["state"], dtype=float)
+            try:
+                x = probe.equilibrium(*[float(v) for v in point["inputs"]])
+            except (RuntimeError, ValueError, np.linalg.LinAlgError, FloatingPointError):
+                offsets.append(None)
+                continue
+            offsets.append(float(np.linalg.norm(x - rest) / max(float(np.linalg.norm(rest)), 1e-12)))
+        cache[key] = offsets
+    return cache[key]
+
+
 def _verdicts(name: str, candidates: dict, points: list, cache: dict) -> list:
     """Stability verdicts (as :func:`stability_at_points`) of candidate ``name`` from the
     :func:`_growth_rates` cache."""
@@ -159,7 +182,7 @@ def _verdicts(name: str, candidates: dict, points: list, cache: dict) -> list:
 
 
 def _inconsistent_points(name: str, candidates: dict, points: list, cache: dict, unstable_rate: float,
-                         drift_tolerance: float = 0.1) -> int:
+                         drift_tolerance: float = 0.1, rest_offset: float = np.inf) -> int:
     """At how many of ``points`` (where the training records sat at rest) candidate ``name`` is
     inconsistent with the record that sat still: its equilibrium there has a mode growing faster
     than ``unstable_rate`` (1/s; at a point where the small-signal records sat, a mode that does
@@ -212,6 +235,10 @@ def _inconsistent_points(name: str, candidates: dict, points: list, cache: dict,
     the demo's recording (40 dB): the pruning emptied the q-axis voltage integrator's equation (its
     input, vc_q, stays near 0 in the regulated loop), and the demo reported the model unstable,
     max Re λ = 0, at every ug.
+
+    With a finite ``rest_offset`` an equilibrium farther than that (relative, :func:`_rest_offsets`)
+    from the rest state counts too: the record sat still there, so the plant's equilibrium is there
+    (IdentConfig.selection_rest_offset).
     """
     model = candidates[name]
     if points and isinstance(model, ExplicitModel) and not np.all(np.any(model.coefficients != 0, axis=0)):
@@ -232,6 +259,8 @@ def _inconsistent_points(name: str, candidates: dict, points: list, cache: dict,
                 cache[key] = (rest_drift(model, points[k], 1.0 / unstable_rate, drift_tolerance)
                               if np.isfinite(unstable_rate) and unstable_rate > 0 else np.inf)
             count += not cache[key] < drift_tolerance
+        elif np.isfinite(rest_offset) and not (_rest_offsets(name, candidates, points, cache)[k] or 0.0) <= rest_offset:
+            count += 1  # an equilibrium away from where the record sat still (None: none found this way)
         elif points[k].get("smallsignal") and np.isfinite(unstable_rate):
             count += not rate < 0.0  # not stable (as :func:`_verdicts` reads it), a zero mode included
         else:
@@ -451,7 +480,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
               verdicts: dict | None = None, unstable_rate: float = np.inf, hold: float = np.inf,
               equilibrium_grid=(), round_rise: float = np.inf, grid_stability: bool = False,
               noise_floor: float | None = None, noise_ratio: float = np.inf,
-              noise_margin: float = 0.0, refinement_expected: bool = False) -> ExplicitModel:
+              noise_margin: float = 0.0, refinement_expected: bool = False,
+              rest_offset: float = np.inf) -> ExplicitModel:
     """The candidate with the smallest free-run error in ``scores`` (training records, and the
     small-signal records where a fit has them), with ``template``'s metadata and the selection.
 
@@ -502,7 +532,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     points = template.metadata.get("reference_points") or []
     verdicts = {} if verdicts is None else verdicts
     models, misfits, eligible = eligible_candidates(
-        scores, hold, lambda name: _inconsistent_points(name, candidates, points, verdicts, unstable_rate))
+        scores, hold, lambda name: _inconsistent_points(name, candidates, points, verdicts, unstable_rate,
+                                                        rest_offset=rest_offset))
     lost = _lost_rounds(scores, round_rise)
     grid_inputs = _grid_inputs(template, equilibrium_grid)
     # the grid stability check (grid_stability) only where some candidate beats the hold, as the grid rule below
@@ -860,7 +891,8 @@ class PISML(_Estimator):
                 if needed:
                     add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
                         "refinement", 0.84 + 0.14 * fraction, losses=losses)))
-                self.metrics_["refinement_starts_run"] = float(sum(name.startswith("refined") for name in candidates))
+                self.metrics_["refinement_starts_run"] = float(sum(
+                    name.startswith("refined") and LONG_BRANCH_SUFFIX not in name for name in candidates))
             if not noisy and cfg.refine_growing_windows and "distilled" in candidates:
                 self._clean_growing_fallback(explicit, candidates, scores, verdicts, hold, starts, refine_from, add)
             if noisy and cfg.refine_growing_windows and np.isfinite(cfg.refine_rescue_ratio):
@@ -1134,7 +1166,7 @@ def _configured_selection(template: ExplicitModel, candidates: dict, scores: dic
                      equilibrium_grid=cfg.selection_equilibrium_grid, round_rise=cfg.selection_round_rise,
                      grid_stability=cfg.selection_grid_stability, noise_floor=noise_floor,
                      noise_ratio=cfg.selection_warn_noise_ratio, noise_margin=cfg.selection_warn_noise_margin,
-                     refinement_expected=refinement_expected)
+                     refinement_expected=refinement_expected, rest_offset=cfg.selection_rest_offset)
 
 
 def _would_choose(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig, verdicts: dict,
@@ -2069,7 +2101,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         if long is not None:
             out["refined" + LONG_BRANCH_SUFFIX] = ExplicitModel(
                 model.state_names, model.input_names, model.terms, long.coefficients,
-                {**meta, "refinement": {**meta["refinement"], "stages": growing_log + long_log},
+                # its own stage only: the growing stages are the first family's (bench/fit_time.py)
+                {**meta, "refinement": {**meta["refinement"], "stages": long_log, "cost": long.cost},
                  **_with_covariance(long)})
             if long.hessian is not None:
                 prune_rounds(long, repolish, repolish, LONG_BRANCH_SUFFIX)
