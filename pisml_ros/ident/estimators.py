@@ -2104,8 +2104,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
                 # its own stage only: the growing stages are the first family's (bench/fit_time.py)
                 {**meta, "refinement": {**meta["refinement"], "stages": long_log, "cost": long.cost},
                  **_with_covariance(long)})
-            if long.hessian is not None:
-                prune_rounds(long, repolish, repolish, LONG_BRANCH_SUFFIX)
+            prune_rounds(long, repolish, repolish, LONG_BRANCH_SUFFIX)
     if progress:  # stages that converged early leave evaluations of their budget unused
         progress(1.0, {"refine_cost": result.cost if polished is None else polished.cost})
     return out
