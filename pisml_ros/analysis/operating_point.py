@@ -345,21 +345,30 @@ def growth_rates_at_points(model, points, at=None, zero_mode_below: float = 0.0)
     ``zero_mode_below``: an equilibrium with a mode of modulus below this (1/s) counts as none
     (None): with a Jacobian all but singular, the smallest offset in f moves it far (Δx ≈ J⁻¹ Δf)
     and its linear analysis cannot tell growth from decay."""
+    return [rate for _, rate in equilibria_at_points(model, points, at=at, zero_mode_below=zero_mode_below)]
+
+
+def equilibria_at_points(model, points, at=None, zero_mode_below: float = 0.0) -> list:
+    """Per point of ``points`` (or of ``at``, as :func:`growth_rates_at_points`): ``(x, rate)``, the
+    equilibrium ``model`` has there (None where none was found) and its largest real part of the
+    eigenvalues (None also where the equilibrium has a zero mode, ``zero_mode_below``). For a caller
+    that needs both, so that each equilibrium is solved once."""
     from ..model import ExplicitModel
 
     probe = ExplicitModel(model.state_names, model.input_names, model.terms, model.coefficients,
                           {"reference_points": list(points)})
-    rates = []
+    found = []
     for point in (points if at is None else [{"inputs": inputs} for inputs in at]):
         inputs = [float(v) for v in point["inputs"]]
         try:
-            eigenvalues = probe.eigenvalues(*inputs)
+            x = probe.equilibrium(*inputs)
+            eigenvalues = np.linalg.eigvals(probe.jacobian(x, np.array(inputs, dtype=float)))
         except (RuntimeError, ValueError, np.linalg.LinAlgError, FloatingPointError):  # no equilibrium
-            rates.append(None)
+            found.append((None, None))
             continue
         zero_mode = np.min(np.abs(eigenvalues), initial=np.inf) < zero_mode_below
-        rates.append(None if zero_mode else float(np.max(eigenvalues.real)))
-    return rates
+        found.append((x, None if zero_mode else float(np.max(eigenvalues.real))))
+    return found
 
 
 class _TooSlow(Exception):

@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..analysis.operating_point import growth_rates_at_points, rest_drift
+from ..analysis.operating_point import equilibria_at_points, growth_rates_at_points, rest_drift
 from ..data import Dataset
 from ..data.dataset import concat_datasets, records_at_rest, steady_start_mean
 from ..model import ExplicitModel
@@ -146,9 +146,11 @@ MAX_ALTERNATIVES = 4
 def _growth_rates(name: str, candidates: dict, points: list, cache: dict) -> list:
     """:func:`growth_rates_at_points` of candidate ``name``, cached by name (a fit asks for the same
     candidates several times); an equilibrium with a zero mode (:data:`ZERO_MODE_MODULUS`) counts
-    as none."""
+    as none. The equilibria found on the way are cached too (:func:`_rest_offsets`)."""
     if name not in cache:
-        cache[name] = growth_rates_at_points(candidates[name], points, zero_mode_below=ZERO_MODE_MODULUS)
+        found = equilibria_at_points(candidates[name], points, zero_mode_below=ZERO_MODE_MODULUS)
+        cache[name] = [rate for _, rate in found]
+        cache[(name, "equilibria")] = [x for x, _ in found]
     return cache[name]
 
 
@@ -156,21 +158,15 @@ def _rest_offsets(name: str, candidates: dict, points: list, cache: dict) -> lis
     """For each of ``points``, how far candidate ``name``'s equilibrium there (found as the analysis
     finds it, from the rest points) lies from the rest state, ‖x_eq − x_rest‖ / ‖x_rest‖ (as
     :func:`~pisml_ros.analysis.operating_point.rest_drift` measures a drift); None where it has
-    none. Cached by name."""
+    none. Cached by name, from the equilibria :func:`_growth_rates` solved."""
     key = (name, "rest offsets")
     if key not in cache:
-        model = candidates[name]
-        probe = ExplicitModel(model.state_names, model.input_names, model.terms, model.coefficients,
-                              {"reference_points": list(points)})
+        _growth_rates(name, candidates, points, cache)
         offsets = []
-        for point in points:
+        for point, x in zip(points, cache[(name, "equilibria")]):
             rest = np.asarray(point["state"], dtype=float)
-            try:
-                x = probe.equilibrium(*[float(v) for v in point["inputs"]])
-            except (RuntimeError, ValueError, np.linalg.LinAlgError, FloatingPointError):
-                offsets.append(None)
-                continue
-            offsets.append(float(np.linalg.norm(x - rest) / max(float(np.linalg.norm(rest)), 1e-12)))
+            offsets.append(None if x is None else
+                           float(np.linalg.norm(x - rest) / max(float(np.linalg.norm(rest)), 1e-12)))
         cache[key] = offsets
     return cache[key]
 
