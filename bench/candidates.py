@@ -11,7 +11,8 @@ behind the measured notes in ``pisml_ros/ident/config.py`` (stop 40; scratch ``j
     .venv/bin/python bench/candidates.py --scenario protocol --seed 3 --noise 40 \
         [--plant saturation] [--set KEY=VALUE ...] [--out candidates.json]
 
-``--out`` writes every candidate as an explicit model JSON (name -> model dict) and the rows.
+``--out`` writes every candidate as an explicit model JSON (name -> model dict), the rows and the
+fit's selection record (hold error, noise floor: what a replay of the selection needs).
 """
 from __future__ import annotations
 
@@ -105,7 +106,9 @@ def main(argv=None) -> int:
     if args.out:
         Path(args.out).write_text(json.dumps({"scenario": args.scenario, "plant": args.plant, "seed": args.seed,
                                               "noise": args.noise, "settings": settings,
-                                              "chosen": selection["chosen"], "rows": rows, "models": models},
+                                              "chosen": selection["chosen"], "rows": rows, "models": models,
+                                              # what a replay of the selection needs besides the models
+                                              "selection": selection},
                                              indent=1))
     return 0
 
