@@ -1200,7 +1200,7 @@ def test_a_mode_that_does_not_decay_where_the_small_signal_records_sat_is_incons
 
 def test_an_equilibrium_away_from_the_rest_state_is_inconsistent_with_a_rest_offset():
     """``selection_rest_offset``: where a record sat still, the model's equilibrium must lie within
-    that (relative) of the rest state; off (inf) by default."""
+    that (relative) of the rest state; inf: off."""
     from pisml_ros.ident import IdentConfig
     from pisml_ros.ident.estimators import _inconsistent_points, _rest_offsets
 
@@ -1217,7 +1217,7 @@ def test_an_equilibrium_away_from_the_rest_state_is_inconsistent_with_a_rest_off
     assert [_inconsistent_points(name, candidates, points, cache, 1.0) for name in candidates] == [0, 0]
     assert [_inconsistent_points(name, candidates, points, cache, 1.0, rest_offset=0.1)
             for name in candidates] == [0, 2]
-    assert IdentConfig().selection_rest_offset == 0.1  # (the default since stop 69)
+    assert IdentConfig().selection_rest_offset == 0.3  # (0.1 at stop 69, 0.3 since stop 70)
     with pytest.raises(ConfigError, match="selection_rest_offset"):
         IdentConfig.from_mapping({"selection_rest_offset": -1})
 
@@ -1404,6 +1404,41 @@ def test_hold_error_is_the_error_of_holding_each_records_first_state(plant):
     frozen = ExplicitModel(STATE_NAMES, INPUT_NAMES, ["1"], np.zeros((1, 13)))
     assert hold_error(records) == pytest.approx(training_error(frozen, records), rel=1e-9)
     assert 5.0 < hold_error(records) < 100.0
+
+
+def test_selection_tolerance_counts_from_the_noise_floor_on_noisy_records():
+    """``selection_floor_tolerance``: on noisy records a pruned model is near the refined one where
+    its score above the records' noise floor is within (1 + τ) of the refined model's, not where
+    its whole score is within ``selection_tolerance``; a tolerance given outright (the preliminary
+    model's 0) and clean records (no floor) keep the whole-score rule."""
+    from pisml_ros.ident.estimators import _configured_selection, _selected
+
+    def model(nonzero):
+        coef = np.zeros((6, 1))
+        coef[:nonzero] = 1.0
+        return ExplicitModel(("x",), ("u",), ["1", "x", "u", "x**2", "x*u", "u**2"], coef, {})
+
+    candidates = {"refined": model(6), "pruned +0.1 %": model(5), "pruned +0.1 % x2": model(3)}
+    # floor 1.6 %: the refined model's own share 0.6 %, round 1's 0.9 %, round 2's 1.57 % (2.6x)
+    scores = {"refined": 2.2, "pruned +0.1 %": 2.5, "pruned +0.1 % x2": 3.17}
+
+    def chosen(**kwargs):
+        return _selected(candidates["refined"], candidates, scores, tolerance=0.5, **kwargs).metadata["selection"]
+
+    assert chosen()["chosen"] == "pruned +0.1 % x2"  # 3.17 <= 1.5 x 2.2
+    above = chosen(tolerance_floor=1.6, floor_tolerance=1.0)
+    assert above["chosen"] == "pruned +0.1 %"  # the cut: 1.6 + 2 x 0.6 = 2.8 %
+    assert above["tolerance_floor_pct"] == 1.6 and above["floor_tolerance"] == 1.0
+    assert chosen(tolerance_floor=1.6)["chosen"] == "pruned +0.1 % x2"  # floor_tolerance inf: off
+    assert chosen(floor_tolerance=1.0)["chosen"] == "pruned +0.1 % x2"  # no floor (clean records)
+    cfg = IdentConfig()
+    assert cfg.selection_floor_tolerance == 1.0  # (the default since stop 70)
+    configured = _configured_selection(candidates["refined"], candidates, scores, cfg, {}, np.inf, tolerance_floor=1.6)
+    assert configured.metadata["selection"]["chosen"] == "pruned +0.1 %"
+    assert _configured_selection(candidates["refined"], candidates, scores, cfg, {}, np.inf,
+                                 tolerance=0.0, tolerance_floor=1.6).metadata["selection"]["chosen"] == "refined"
+    with pytest.raises(ConfigError, match="selection_floor_tolerance"):
+        IdentConfig.from_mapping({"selection_floor_tolerance": -1})
 
 
 def test_selection_passes_over_a_prune_round_that_lost_the_fit_and_the_rounds_after_it():

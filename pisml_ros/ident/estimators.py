@@ -477,7 +477,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
               equilibrium_grid=(), round_rise: float = np.inf, grid_stability: bool = False,
               noise_floor: float | None = None, noise_ratio: float = np.inf,
               noise_margin: float = 0.0, refinement_expected: bool = False,
-              rest_offset: float = np.inf) -> ExplicitModel:
+              rest_offset: float = np.inf, tolerance_floor: float | None = None,
+              floor_tolerance: float = np.inf) -> ExplicitModel:
     """The candidate with the smallest free-run error in ``scores`` (training records, and the
     small-signal records where a fit has them), with ``template``'s metadata and the selection.
 
@@ -492,7 +493,9 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     sparsest pruned one within ``tolerance`` (relative) of the refined model's error (or the
     smallest, if larger; the smallest alone where the refined model does not compete, e.g. one
     inconsistent with the rest points, which runs away from them: its error is no yardstick)
-    takes its place, preferring those whose stability verdicts at the
+    takes its place (with ``tolerance_floor`` and a finite ``floor_tolerance``: whose score above
+    that floor is within ``floor_tolerance`` of the refined model's, :func:`_chosen_among`),
+    preferring those whose stability verdicts at the
     training records' operating points (``reference_points``) are the refined model's (where it is
     among the candidates consistent with them): the data
     barely tell them apart from the best, a term the data cannot support is a liability out of
@@ -535,8 +538,9 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     # the grid stability check (grid_stability) only where some candidate beats the hold, as the grid rule below
     stability_grid = grid_inputs if grid_stability and models else []
     passed: dict = {}
+    above_floor = {"floor": tolerance_floor, "floor_tolerance": floor_tolerance}
     chosen = _chosen_among(eligible, candidates, scores, tolerance, points, verdicts, lost=lost,
-                           grid_inputs=stability_grid, passed=passed)
+                           grid_inputs=stability_grid, passed=passed, **above_floor)
     missing = {}
     # only among models: where none beats the hold the best score stands, as above (20 dB, stop 41:
     # the re-choice took a pruning collapsed to 13 coefficients, 310 % against the best's 53 %, for
@@ -553,7 +557,7 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
         if fewest < missing[chosen]:
             chosen = _chosen_among([name for name in pool if missing[name] == fewest], candidates, scores,
                                    tolerance, points, verdicts, competing=eligible, lost=lost,
-                                   grid_inputs=stability_grid, passed=passed)
+                                   grid_inputs=stability_grid, passed=passed, **above_floor)
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
     # what P0 in its terms' (Pf - P0) is; how far the data pin its coefficients
@@ -568,6 +572,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores),
                                    "nonzero": {name: int(c.n_parameters) for name, c in candidates.items()},
                                    "tolerance": tolerance, "round_rise": round_rise, "lost_rounds": sorted(lost),
+                                   "tolerance_floor_pct": tolerance_floor if np.isfinite(floor_tolerance) else None,
+                                   "floor_tolerance": floor_tolerance if np.isfinite(floor_tolerance) else None,
                                    "inconsistent_rest_points": misfits,
                                    "unstable_rate": unstable_rate,
                                    "smallsignal_unstable_rate": 0.0 if np.isfinite(unstable_rate) else unstable_rate,
@@ -587,9 +593,12 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
 
 def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: float, points: list,
                   verdicts: dict, competing: list | None = None, lost=frozenset(), grid_inputs=(),
-                  passed: dict | None = None) -> str:
+                  passed: dict | None = None, floor: float | None = None, floor_tolerance: float = np.inf) -> str:
     """The name :func:`_selected` chooses among the ``eligible`` candidates: the best score, or the
-    sparsest pruned model of its refinement family near it (not one of the ``lost`` prune rounds,
+    sparsest pruned model of its refinement family near it (its score within ``tolerance``, relative,
+    of the yardstick's; with a ``floor`` and a finite ``floor_tolerance``, the noisy records' noise
+    floor: its score above the floor within ``floor_tolerance`` of the yardstick's, as the part a
+    model can be blamed for) (not one of the ``lost`` prune rounds,
     :func:`_lost_rounds`, unless it is the best itself: the rule keeps a lost round from standing in
     for the best, not the best from winning). ``competing`` (default ``eligible``): the candidates the selection let
     compete, of which ``eligible`` may be a subset; the refined model's score is the tolerance's
@@ -613,8 +622,12 @@ def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: flo
         # inf, so every pruned model was "near" and the sparsest won whatever it scored)
         competing = eligible if competing is None else competing
         reference = max(scores[best], scores[refined_name]) if refined_name in competing else scores[best]
+        if floor is not None and np.isfinite(floor_tolerance):
+            cut = floor + max(reference - floor, 0.0) * (1 + floor_tolerance)
+        else:
+            cut = reference * (1 + tolerance)
         near = [name for name in eligible if name.startswith("pruned") and _refinement_family(name) == family
-                and scores[name] <= reference * (1 + tolerance) and (name not in lost or name == best)]
+                and scores[name] <= cut and (name not in lost or name == best)]
         # the refined model's verdicts, not "stable": a record can start at a weakly unstable
         # equilibrium that 40 ms do not reveal (protocol ug0 up to 1.2, plant boundary 1.166, max
         # Re +0.25 1/s at 1.2): preferring models stable there favours a boundary in the wrong place
@@ -827,6 +840,8 @@ class PISML(_Estimator):
         hold = hold_error(scoring)
         # what the noise alone leaves: the yardstick of the rescue and of the selection's caution
         noise_floor = noise_floor_error(scoring)
+        # the selection's tolerance counts from it on noisy records (IdentConfig.selection_floor_tolerance)
+        tolerance_floor = noise_floor if noisy else None
         if early is not None:
             early[1].resume_caller()  # the refinement shares the threads out again
         if cfg.refine:
@@ -882,7 +897,7 @@ class PISML(_Estimator):
                 # does not give a model consistent with the records' rest points (IdentConfig.refine_starts)
                 add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
                     "refinement", 0.7 + 0.28 * 0.5 * fraction, losses=losses)))
-                needed = not _refinement_suffices(explicit, candidates, scores, cfg, verdicts, hold)
+                needed = not _refinement_suffices(explicit, candidates, scores, cfg, verdicts, hold, tolerance_floor)
                 explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": needed}
                 if needed:
                     add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
@@ -899,7 +914,7 @@ class PISML(_Estimator):
             if cfg.limiter_search:
                 try:
                     self._limiter_family(explicit, candidates, scores, verdicts, hold, noise_floor, library, train,
-                                         scoring, refine_from, add, limit_search)
+                                         scoring, refine_from, add, limit_search, tolerance_floor)
                 except (ValueError, np.linalg.LinAlgError) as err:
                     # a search that breaks down numerically costs its candidates, not the fit
                     explicit.metadata.setdefault("limiter", {})["error"] = f"{type(err).__name__}: {err}"
@@ -912,7 +927,7 @@ class PISML(_Estimator):
         self.candidates_ = candidates
         # (on noisy records the refinement is what fits the trajectories: a model from before it is a caution)
         explicit = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold, noise_floor=noise_floor,
-                                         refinement_expected=cfg.refine and noisy)
+                                         refinement_expected=cfg.refine and noisy, tolerance_floor=tolerance_floor)
         explicit.metadata["selection"]["scored_on"] = ("training and small-signal records" if scoring is not train
                                                        else "training records")
         if noisy and not (smallsignal is not None and len(smallsignal)):
@@ -996,7 +1011,7 @@ class PISML(_Estimator):
         cfg = self.config
 
         def chosen_ratio():
-            chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold)
+            chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold, tolerance_floor=floor)
             return chosen, scores[chosen] / max(floor, 1e-12), misfits
 
         chosen, ratio, misfits = chosen_ratio()
@@ -1021,7 +1036,7 @@ class PISML(_Estimator):
             self.metrics_["refinement_starts_run"] = 2.0
 
     def _limiter_family(self, explicit, candidates, scores, verdicts, hold, floor, library, train, scoring,
-                        refine_from, add, limit_search: _Deferred):
+                        refine_from, add, limit_search: _Deferred, tolerance_floor: float | None = None):
         """The records may hold a saturation no library term has: a limit of a dq reference (its
         magnitude, or each axis) is fitted to them (``limit_search``, a :class:`_Deferred`
         :func:`~.limiter.fit_reference_limit` that ran beside the refinement where a thread came free;
@@ -1050,7 +1065,7 @@ class PISML(_Estimator):
         0–9 at 40 dB, clean, 20 and 30 dB; the other inverters; the scenarios at 40 dB).
         """
         cfg = self.config
-        chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold)
+        chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold, tolerance_floor=tolerance_floor)
         threshold = cfg.selection_warn_noise_ratio * floor + cfg.selection_warn_noise_margin
         record = {"selected_before": chosen, "error_pct": scores[chosen], "threshold_pct": threshold,
                   "run": True, "family": bool(scores[chosen] > threshold)}
@@ -1097,7 +1112,8 @@ class PISML(_Estimator):
         for k, (start, outcome) in enumerate(zip(starts, outcomes)):
             add(0, *outcome, suffix=" with limit" + ("" if k == 0 else f" from {start}"), start=start)
         record["added"] = sorted(set(candidates) - before)
-        chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold, noise_floor=floor)
+        chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold, noise_floor=floor,
+                               tolerance_floor=tolerance_floor)
         record["selected_after"] = chosen
         record["seconds"] = limit_search.seconds + (time.monotonic() - started)  # the search and the family
         self.metrics_["limiter_seconds"] = record["seconds"]
@@ -1123,7 +1139,7 @@ class PISML(_Estimator):
         which runs before this and may already give a consistent one. Recorded in the metadata
         (``refinement_unrestricted``) and the metrics."""
         cfg = self.config
-        chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold)
+        chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold, tolerance_floor=floor)
         # (a re-fit may be chosen on its merits: lost means no refinement ran through to a free run
         # that reproduces the records better than holding their first states. Stop 63, vendor-c seed 3
         # at 40 dB with both starts side by side: every refinement broke down but one prune round,
@@ -1151,9 +1167,12 @@ class PISML(_Estimator):
 
 def _configured_selection(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
                           verdicts: dict, hold: float, tolerance: float | None = None,
-                          noise_floor: float | None = None, refinement_expected: bool = False) -> ExplicitModel:
+                          noise_floor: float | None = None, refinement_expected: bool = False,
+                          tolerance_floor: float | None = None) -> ExplicitModel:
     """:func:`_selected` with the selection settings of ``cfg`` (``tolerance``: its
     ``selection_tolerance`` unless given; the preliminary model before refinement takes 0;
+    ``tolerance_floor``: the noisy scoring records' noise floor, which ``selection_floor_tolerance``
+    measures from where the configured tolerance applies, None on clean records;
     ``noise_floor``: the scoring records', for the warning on a model far worse than their noise;
     ``refinement_expected``: for the warning on a model from before the refinement)."""
     return _selected(template, candidates, scores,
@@ -1162,33 +1181,37 @@ def _configured_selection(template: ExplicitModel, candidates: dict, scores: dic
                      equilibrium_grid=cfg.selection_equilibrium_grid, round_rise=cfg.selection_round_rise,
                      grid_stability=cfg.selection_grid_stability, noise_floor=noise_floor,
                      noise_ratio=cfg.selection_warn_noise_ratio, noise_margin=cfg.selection_warn_noise_margin,
-                     refinement_expected=refinement_expected, rest_offset=cfg.selection_rest_offset)
+                     refinement_expected=refinement_expected, rest_offset=cfg.selection_rest_offset,
+                     tolerance_floor=tolerance_floor if tolerance is None else None,
+                     floor_tolerance=cfg.selection_floor_tolerance)
 
 
 def _would_choose(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig, verdicts: dict,
-                  hold: float, noise_floor: float | None = None) -> str:
+                  hold: float, noise_floor: float | None = None, tolerance_floor: float | None = None) -> str:
     """The name of the candidate :func:`_configured_selection` takes now (the fallbacks' question:
     is the model the selection would take good enough?)."""
-    return _would_choose_misfits(template, candidates, scores, cfg, verdicts, hold, noise_floor)[0]
+    return _would_choose_misfits(template, candidates, scores, cfg, verdicts, hold, noise_floor, tolerance_floor)[0]
 
 
 def _would_choose_misfits(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig, verdicts: dict,
-                          hold: float, noise_floor: float | None = None) -> tuple:
+                          hold: float, noise_floor: float | None = None,
+                          tolerance_floor: float | None = None) -> tuple:
     """:func:`_would_choose`'s name, and at how many of the records' rest points that candidate is
     inconsistent with them (:func:`_inconsistent_points`; 0 for a fit without rest points)."""
-    selection = _configured_selection(template, candidates, scores, cfg, verdicts, hold,
-                                      noise_floor=noise_floor).metadata["selection"]
+    selection = _configured_selection(template, candidates, scores, cfg, verdicts, hold, noise_floor=noise_floor,
+                                      tolerance_floor=tolerance_floor).metadata["selection"]
     chosen = selection["chosen"]
     return chosen, int(selection.get("inconsistent_rest_points", {}).get(chosen) or 0)
 
 
 def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
-                         verdicts: dict, hold: float = np.inf) -> bool:
+                         verdicts: dict, hold: float = np.inf, tolerance_floor: float | None = None) -> bool:
     """Whether the first refinement start's family already gives the explicit model: the selection
     over the candidates so far takes one of its models, and that model is consistent with every
     operating point where the records sat at rest (an equilibrium there, no mode growing faster than
     ``cfg.selection_unstable_rate``, every mode decaying where the small-signal records sat)."""
-    name, misfits = _would_choose_misfits(template, candidates, scores, cfg, verdicts, hold)
+    name, misfits = _would_choose_misfits(template, candidates, scores, cfg, verdicts, hold,
+                                          tolerance_floor=tolerance_floor)
     return _refinement_family(name) in ("", LONG_BRANCH_SUFFIX) and misfits == 0
 
 
