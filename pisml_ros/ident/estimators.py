@@ -595,12 +595,12 @@ def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: flo
                   verdicts: dict, competing: list | None = None, lost=frozenset(), grid_inputs=(),
                   passed: dict | None = None, floor: float | None = None, floor_tolerance: float = np.inf) -> str:
     """The name :func:`_selected` chooses among the ``eligible`` candidates: the best score, or the
-    sparsest pruned model of its refinement family near it (its score within ``tolerance``, relative,
-    of the yardstick's; with a ``floor`` and a finite ``floor_tolerance``, the noisy records' noise
-    floor: its score above the floor within ``floor_tolerance`` of the yardstick's, as the part a
-    model can be blamed for) (not one of the ``lost`` prune rounds,
-    :func:`_lost_rounds`, unless it is the best itself: the rule keeps a lost round from standing in
-    for the best, not the best from winning). ``competing`` (default ``eligible``): the candidates the selection let
+    sparsest pruned model of its refinement family near it, not one of the ``lost`` prune rounds
+    (:func:`_lost_rounds`, unless it is the best itself: the rule keeps a lost round from standing in
+    for the best, not the best from winning). Near: its score within ``tolerance`` (relative) of the
+    yardstick's; with a ``floor`` (the noisy records' noise floor) and a finite ``floor_tolerance``,
+    its score above the floor within ``floor_tolerance`` of the yardstick's, the part a model can be
+    blamed for. ``competing`` (default ``eligible``): the candidates the selection let
     compete, of which ``eligible`` may be a subset; the refined model's score is the tolerance's
     yardstick where it is among them.
 
@@ -1011,7 +1011,8 @@ class PISML(_Estimator):
         cfg = self.config
 
         def chosen_ratio():
-            chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold, tolerance_floor=floor)
+            chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold,
+                                                    tolerance_floor=floor)
             return chosen, scores[chosen] / max(floor, 1e-12), misfits
 
         chosen, ratio, misfits = chosen_ratio()
@@ -1139,7 +1140,8 @@ class PISML(_Estimator):
         which runs before this and may already give a consistent one. Recorded in the metadata
         (``refinement_unrestricted``) and the metrics."""
         cfg = self.config
-        chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold, tolerance_floor=floor)
+        chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold,
+                                                tolerance_floor=floor)
         # (a re-fit may be chosen on its merits: lost means no refinement ran through to a free run
         # that reproduces the records better than holding their first states. Stop 63, vendor-c seed 3
         # at 40 dB with both starts side by side: every refinement broke down but one prune round,
