@@ -255,8 +255,9 @@ def _inconsistent_points(name: str, candidates: dict, points: list, cache: dict,
                 cache[key] = (rest_drift(model, points[k], 1.0 / unstable_rate, drift_tolerance)
                               if np.isfinite(unstable_rate) and unstable_rate > 0 else np.inf)
             count += not cache[key] < drift_tolerance
-        elif np.isfinite(rest_offset) and not (_rest_offsets(name, candidates, points, cache)[k] or 0.0) <= rest_offset:
-            count += 1  # an equilibrium away from where the record sat still (None: none found this way)
+        elif np.isfinite(rest_offset) and not _rest_offsets(name, candidates, points, cache)[k] <= rest_offset:
+            # an equilibrium away from where the record sat still (a rate implies the equilibrium it was solved at)
+            count += 1
         elif points[k].get("smallsignal") and np.isfinite(unstable_rate):
             count += not rate < 0.0  # not stable (as :func:`_verdicts` reads it), a zero mode included
         else:
