@@ -9,7 +9,7 @@ modes over ug 0.2-1.1, and the largest real part at the records' rest points. It
 behind the measured notes in ``pisml_ros/ident/config.py`` (stop 40; scratch ``jc.py`` before).
 
     .venv/bin/python bench/candidates.py --scenario protocol --seed 3 --noise 40 \
-        [--plant saturation] [--set KEY=VALUE ...] [--out candidates.json]
+        [--plant vendor-c] [--set KEY=VALUE ...] [--out candidates.json]
 
 ``--out`` writes every candidate as an explicit model JSON (name -> model dict), the rows and the
 fit's selection record (hold error, noise floor: what a replay of the selection needs).

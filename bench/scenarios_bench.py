@@ -46,22 +46,23 @@ SCENARIOS = {
 }
 
 
-def scenario_datasets(spec: dict, snr: float | None, seed: int, effects: dict | None = None):
-    """The plant (with ``effects``, bench.PLANTS', none by default) and the training, small-signal
-    and test records of one scenario (bench.datasets)."""
+def scenario_datasets(spec: dict, snr: float | None, seed: int, effects: dict | None = None, params=None):
+    """The plant (with ``effects``, none by default, and ``params``, PlantParameters, the default
+    ones by default) and the training, small-signal and test records of one scenario (bench.datasets)."""
     from bench import datasets
 
-    return datasets(effects or {}, snr, seed=seed, **spec)
+    return datasets(effects or {}, snr, seed=seed, params=params, **spec)
 
 
 def add_recording_options(parser: argparse.ArgumentParser, seed: int = 0) -> None:
     """``--scenario``, ``--plant``, ``--seed``, ``--noise`` and ``--set``: one recording to fit and the
     settings to fit it with (``bench/candidates.py``, ``bench/fit_time.py``; :func:`recording_from_options`)."""
-    from bench import PLANTS, add_settings_option
+    from bench import add_settings_option
+    from plants_bench import PLANTS
 
     parser.add_argument("--scenario", default="protocol", help=f"one of {sorted(SCENARIOS)}")
     parser.add_argument("--plant", default="standard",
-                        help=f"one of {sorted(PLANTS)} (bench.py's; the saturation plant: a current limit)")
+                        help=f"one of {list(PLANTS)} (bench/plants_bench.py's: other parameters or an effect)")
     parser.add_argument("--seed", type=int, default=seed, help="recording (scenario and noise seed)")
     parser.add_argument("--noise", default="40", help="'clean' or an SNR in dB")
     add_settings_option(parser)
@@ -70,7 +71,10 @@ def add_recording_options(parser: argparse.ArgumentParser, seed: int = 0) -> Non
 def recording_from_options(args, parser: argparse.ArgumentParser):
     """``(plant, train, small-signal, test records, settings)`` of :func:`add_recording_options`' arguments;
     an unknown scenario or plant, or a bad setting, stops the script through ``parser`` before any fit."""
-    from bench import PLANTS, settings_or_exit
+    from bench import settings_or_exit
+    from plants_bench import PLANT_EFFECTS, PLANT_PARAMETERS, PLANTS
+
+    from pisml_ros.plant.parameters import PlantParameters
 
     if args.scenario not in SCENARIOS:
         parser.error(f"--scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
@@ -78,7 +82,9 @@ def recording_from_options(args, parser: argparse.ArgumentParser):
         parser.error(f"--plant {args.plant!r}: not one of {sorted(PLANTS)}")
     settings = settings_or_exit(args.set, parser)  # as `pisml identify --set`
     snr = None if args.noise == "clean" else float(args.noise)
-    return (*scenario_datasets(SCENARIOS[args.scenario], snr, args.seed, PLANTS[args.plant]), settings)
+    params = PlantParameters().replace(**PLANT_PARAMETERS.get(args.plant, {}))
+    return (*scenario_datasets(SCENARIOS[args.scenario], snr, args.seed, PLANT_EFFECTS.get(args.plant),
+                               params), settings)
 
 
 def main(argv=None) -> int:
