@@ -11,7 +11,7 @@ from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum
 from pisml_ros.data import Dataset, Trajectory, read_dataset, write_dataset
 from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
 from pisml_ros.ident.backbone import fit_backbone, noise_moments, sparse_regression
-from pisml_ros.ident.estimators import MAX_ALTERNATIVES, NO_SMALLSIGNAL_WARNING
+from pisml_ros.ident.estimators import MAX_ALTERNATIVES, NO_SMALLSIGNAL_WARNING, backbone_span
 from pisml_ros.ident.library import coupling_separation, physics_library
 from pisml_ros.ident.trajfit import backward_elimination
 from pisml_ros.model import ExplicitModel
@@ -162,6 +162,18 @@ def test_backbone_is_fast_sparse_and_close(train, test_set):
     assert set(errs) == {"iod", "ood", "iod_vector", "ood_vector"} and all(map(math.isfinite, errs.values()))
 
 
+def test_backbone_window_is_bounded_in_time_at_coarse_sampling():
+    config = IdentConfig()
+    assert (config.backbone_span, config.backbone_span_max_s) == (10, 0.001)
+    # the protocol's 10 kHz: 10 samples either way; 5 kHz: the same 1 ms in 5; 20 kHz: 10 samples, 0.5 ms
+    assert [backbone_span(config, dt) for dt in (1e-4, 2e-4, 5e-5, 1 / 3000, 1e-3)] == [10, 5, 10, 3, 3]
+    unbounded = IdentConfig.from_mapping({"backbone_span_max_s": 0.0})
+    assert backbone_span(unbounded, 2e-4) == 10
+    assert backbone_span(IdentConfig.from_mapping({"backbone_span": 4}), 1e-4) == 4
+    with pytest.raises(ConfigError, match="backbone_span_max_s must be >= 0, got -0.001"):
+        IdentConfig.from_mapping({"backbone_span_max_s": -0.001})
+
+
 def test_noise_compensated_regression_removes_the_errors_in_variables_bias():
     # b = 2 x + 0.5 y with x and y measured with noise as large as x's own spread: plain least
     # squares attenuates the x coefficient towards 2 / (1 + 1) = 1; the compensated fit does not
@@ -286,6 +298,7 @@ def test_couplings_are_kept_only_where_the_data_separate_them(plant, train):
     assert est.metrics_["frequency_couplings"] == 0.0
     assert not any(t.startswith("Pf*") for t in est.backbone_.terms)
     assert est.backbone_.metadata["frequency_couplings"]["used"] is False
+    assert est.backbone_.metadata["backbone_span_samples"] == 10  # 1 ms at the records' 10 kHz
     forced = IdentConfig.from_mapping({**FAST, "refine": False, "coupling_min_separation": 0.0})
     est = make_estimator("pisml", forced).fit(train)
     assert any(t.startswith("Pf*") for t in est.backbone_.terms)

@@ -125,6 +125,22 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
                          "sample_period": float(train.dt)}}
 
 
+def backbone_span(config: IdentConfig, dt: float) -> int:
+    """Samples per window of the backbone's integral form at the sample period ``dt`` (s):
+    ``config.backbone_span``, fewer where that would be longer than ``config.backbone_span_max_s``
+    (0: no bound), and never below 3.
+
+    Examples
+    --------
+    >>> backbone_span(IdentConfig(), 1e-4), backbone_span(IdentConfig(), 2e-4), backbone_span(IdentConfig(), 5e-5)
+    (10, 5, 10)
+    """
+    if config.backbone_span_max_s <= 0 or dt <= 0:
+        return config.backbone_span
+    # round, not floor: 1 ms at 10 kHz is 10 samples, not 9 by float division
+    return max(3, min(config.backbone_span, round(config.backbone_span_max_s / dt)))
+
+
 # an equilibrium with a mode of modulus below this (1/s) counts as none where the selection asks
 # for one (a zero mode: the smallest offset in f moves such an equilibrium far, and the records
 # cannot resolve a time constant of 100 s). Stop 61, filter_terms "physics" on 40 dB benchmark
@@ -765,10 +781,12 @@ class PISML(_Estimator):
         self.metrics_["coupling_separation"] = separation
         self.metrics_["frequency_couplings"] = float(coupling)
         theta_terms = physics_library(cfg.roles, train.state_names, coupling=coupling)
-        backbone = fit_backbone(train, theta_terms, span=cfg.backbone_span, threshold=cfg.backbone_threshold,
+        span = backbone_span(cfg, train.dt)
+        backbone = fit_backbone(train, theta_terms, span=span, threshold=cfg.backbone_threshold,
                                 alpha=cfg.backbone_alpha)
         backbone.metadata.update(_meta(self.method, cfg, train, smallsignal))
         backbone.metadata["stage"] = "backbone"
+        backbone.metadata["backbone_span_samples"] = span
         backbone.metadata["frequency_couplings"] = {"used": coupling, "separation": round(separation, 4),
                                                     "min_separation": cfg.coupling_min_separation}
         self.backbone_ = backbone
@@ -777,7 +795,7 @@ class PISML(_Estimator):
         noisy = _noisy(train)
         compensated = None
         if cfg.backbone_noise_correction and noisy:
-            compensated = fit_backbone(train, theta_terms, span=cfg.backbone_span, threshold=cfg.backbone_threshold,
+            compensated = fit_backbone(train, theta_terms, span=span, threshold=cfg.backbone_threshold,
                                        alpha=cfg.backbone_alpha, noise_correction=True)
             compensated.metadata = {**backbone.metadata, "backbone_fit": compensated.metadata["method"],
                                     "noise_std": compensated.metadata["noise_std"]}
