@@ -53,12 +53,12 @@ class IdentConfig:
     # so that it spans the same stretch of the LCL oscillation (period ~0.65 ms) as at the protocol's
     # 10 kHz, where both give 10 samples; 0: backbone_span samples at any rate. Measured (stop 71,
     # scenarios "5 kHz", 40 dB, seeds 0-3, IOD / OOD %): 10 samples (2 ms) gave 0.224 / 0.502,
-    # 0.94 / 3.53 (spurious unstable at every ug, W 2140), 0.361 / 1.99, 0.188 / 0.634, one of four
+    # 0.94 / 3.53 (spurious unstable at every ug, W 2140), 0.361 / 1.99, 0.188 / 0.634, two of four
     # within both targets, fits 85-208 s; 5 samples (1 ms) 0.207 / 0.338, 0.614 / 0.370, 0.404 / 0.531,
-    # 0.428 / 0.442, three of four, 46-95 s; clean 0.0062 / 0.021 and 0.0046 / 0.028 (0.0032 / 0.020,
-    # 0.0031 / 0.028). A longer window at 20 kHz (20 samples, 1 ms) was no better: seeds 0 / 1 at
-    # 40 dB 0.726 / 0.249 and 0.240 / 0.252 (spurious at ug 0.2, 0.4) against 0.399 / 0.131 and
-    # 0.959 / 0.896, hence a bound, not a fixed duration
+    # 0.428 / 0.442 (the second with 215 coefficients), three of four, 46-95 s; clean 0.0062 / 0.021
+    # and 0.0046 / 0.028 (0.0032 / 0.020, 0.0031 / 0.028). A longer window at 20 kHz (20 samples,
+    # 1 ms) was no better: seeds 0 / 1 at 40 dB 0.726 / 0.249 and 0.240 / 0.252 (spurious at ug 0.2,
+    # 0.4) against 0.449 / 0.595 and 0.959 / 0.896, hence a bound, not a fixed duration
     backbone_span_max_s: float = 0.001
     backbone_threshold: float = 0.02
     backbone_alpha: float = 1e-6
