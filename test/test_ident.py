@@ -170,6 +170,7 @@ def test_backbone_window_is_bounded_in_time_at_coarse_sampling():
     unbounded = IdentConfig.from_mapping({"backbone_span_max_s": 0.0})
     assert backbone_span(unbounded, 2e-4) == 10
     assert backbone_span(IdentConfig.from_mapping({"backbone_span": 4}), 1e-4) == 4
+    assert backbone_span(IdentConfig.from_mapping({"backbone_span": 2}), 1e-3) == 2  # the bound never lengthens
     with pytest.raises(ConfigError, match="backbone_span_max_s must be >= 0, got -0.001"):
         IdentConfig.from_mapping({"backbone_span_max_s": -0.001})
 

@@ -812,7 +812,8 @@ class IdentConfig:
         for key in positive:
             if getattr(self, key) <= 0:
                 raise ConfigError(f"identification config: {key} must be > 0, got {getattr(self, key)}")
-        for key in ["backbone_threshold", "backbone_alpha", "backbone_span_max_s", "coupling_min_separation", "dropout", "lambda_pert", "lambda_sparse",
+        for key in ["backbone_threshold", "backbone_alpha", "backbone_span_max_s", "coupling_min_separation", "dropout",
+                    "lambda_pert", "lambda_sparse",
                     "distill_threshold", "distill_spread", "refine_max_nfev", "selection_tolerance", "selection_unstable_rate",
                     "selection_rest_offset",
                     "refine_stability_weight", "refine_stability_margin", "refine_equilibrium_weight",

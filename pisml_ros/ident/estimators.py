@@ -128,7 +128,7 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
 def backbone_span(config: IdentConfig, dt: float) -> int:
     """Samples per window of the backbone's integral form at the sample period ``dt`` (s):
     ``config.backbone_span``, fewer where that would be longer than ``config.backbone_span_max_s``
-    (0: no bound), and never below 3.
+    (0: no bound), but not fewer than 3 by the bound.
 
     Examples
     --------
@@ -138,7 +138,7 @@ def backbone_span(config: IdentConfig, dt: float) -> int:
     if config.backbone_span_max_s <= 0 or dt <= 0:
         return config.backbone_span
     # round, not floor: 1 ms at 10 kHz is 10 samples, not 9 by float division
-    return max(3, min(config.backbone_span, round(config.backbone_span_max_s / dt)))
+    return min(config.backbone_span, max(3, round(config.backbone_span_max_s / dt)))
 
 
 # an equilibrium with a mode of modulus below this (1/s) counts as none where the selection asks
