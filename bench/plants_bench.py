@@ -55,6 +55,13 @@ PLANT_EFFECTS = {
     "modulation": {"voltage_limit": {"vmax": 1.2}},
 }
 PLANTS = (*PLANT_PARAMETERS, *PLANT_EFFECTS)
+
+
+def plant_setup(name: str):
+    """``(PlantParameters, effects)`` of one of PLANTS (an effect plant has the default parameters)."""
+    from pisml_ros.plant.parameters import PlantParameters
+
+    return PlantParameters().replace(**PLANT_PARAMETERS.get(name, {})), PLANT_EFFECTS.get(name, {})
 METHODS = ("pisml", "mod-sindy")
 
 
@@ -71,7 +78,6 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     from pisml_ros.ident import IdentConfig
-    from pisml_ros.plant.parameters import PlantParameters
 
     config = IdentConfig.load(None, settings_or_exit(args.set, parser))
     started = time.monotonic()
@@ -79,8 +85,7 @@ def main(argv=None) -> int:
     for name in (p.strip() for p in args.plants.split(",") if p.strip()):
         if name not in PLANTS:
             parser.error(f"--plants: unknown plant {name!r} (known: {', '.join(PLANTS)})")
-        params = PlantParameters().replace(**PLANT_PARAMETERS.get(name, {}))
-        effects = PLANT_EFFECTS.get(name, {})
+        params, effects = plant_setup(name)
         for seed, snr in ((int(k), snr) for k in args.seeds.split(",") for snr in (None, 40.0)):
             noise = "clean" if snr is None else f"{snr:g} dB"
             plant, train, small, test = datasets(effects, snr, seed=seed, params=params)

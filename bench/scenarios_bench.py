@@ -72,9 +72,7 @@ def recording_from_options(args, parser: argparse.ArgumentParser):
     """``(plant, train, small-signal, test records, settings)`` of :func:`add_recording_options`' arguments;
     an unknown scenario or plant, or a bad setting, stops the script through ``parser`` before any fit."""
     from bench import settings_or_exit
-    from plants_bench import PLANT_EFFECTS, PLANT_PARAMETERS, PLANTS
-
-    from pisml_ros.plant.parameters import PlantParameters
+    from plants_bench import PLANTS, plant_setup
 
     if args.scenario not in SCENARIOS:
         parser.error(f"--scenario {args.scenario!r}: not one of {sorted(SCENARIOS)}")
@@ -82,9 +80,8 @@ def recording_from_options(args, parser: argparse.ArgumentParser):
         parser.error(f"--plant {args.plant!r}: not one of {sorted(PLANTS)}")
     settings = settings_or_exit(args.set, parser)  # as `pisml identify --set`
     snr = None if args.noise == "clean" else float(args.noise)
-    params = PlantParameters().replace(**PLANT_PARAMETERS.get(args.plant, {}))
-    return (*scenario_datasets(SCENARIOS[args.scenario], snr, args.seed, PLANT_EFFECTS.get(args.plant),
-                               params), settings)
+    params, effects = plant_setup(args.plant)
+    return (*scenario_datasets(SCENARIOS[args.scenario], snr, args.seed, effects, params), settings)
 
 
 def main(argv=None) -> int:

@@ -135,7 +135,7 @@ def backbone_span(config: IdentConfig, dt: float) -> int:
     >>> backbone_span(IdentConfig(), 1e-4), backbone_span(IdentConfig(), 2e-4), backbone_span(IdentConfig(), 5e-5)
     (10, 5, 10)
     """
-    if config.backbone_span_max_s <= 0 or dt <= 0:
+    if config.backbone_span_max_s <= 0:  # dt > 0: datasets reject times that do not increase
         return config.backbone_span
     # round, not floor: 1 ms at 10 kHz is 10 samples, not 9 by float division
     return min(config.backbone_span, max(3, round(config.backbone_span_max_s / dt)))
