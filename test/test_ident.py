@@ -1847,14 +1847,52 @@ def test_noisy_fit_whose_choice_is_inconsistent_with_the_rest_points_runs_the_re
     fallback = meta["refinement_unrestricted"]
     assert fallback["ratio"] < cfg.refine_rescue_ratio
     assert fallback["run"] == (fallback["inconsistent_rest_points"] > 0 or fallback["refinement_lost"])
-    # consistent choices below the ratio: neither runs
-    monkeypatch.setattr(estimators, "_inconsistent_points", lambda *args, **kwargs: 0)
+    # consistent refined choices below the ratio: neither runs (the candidates from before the
+    # refinement inconsistent, as those run the rescue whatever their score, tested below)
+    monkeypatch.setattr(estimators, "_inconsistent_points",
+                        lambda name, *args, **kwargs: int(estimators._refinement_family(name) is None))
     kept = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
                                             add_measurement_noise(small, 40.0, seed=2))
     meta = kept.explicit_model_.metadata
     assert not meta["refinement_rescue"]["run"] and meta["refinement_rescue"]["inconsistent_rest_points"] == 0
     assert not meta["refinement_unrestricted"]["run"] or meta["refinement_unrestricted"]["refinement_lost"]
     assert not any(name.endswith(" with growing prior") for name in kept.candidates_)
+
+
+def test_noisy_fit_whose_choice_is_from_before_the_refinement_runs_the_rescue(train, small, monkeypatch):
+    # stop 72, vendor-c seed 2 at 40 dB: every refined candidate ran away from the records' rest
+    # points and the long-window prunes scored worse, so the selection took the trained backbone,
+    # consistent and at 1.39x the noise floor (below the rescue's ratio): nothing tried again.
+    # Here every refinement candidate outside the rescue's family is inconsistent with the rest
+    # points and every other consistent, at a ratio the rescue never reaches by itself
+    from pisml_ros.ident import estimators
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    real = estimators._inconsistent_points
+
+    def refinement_inconsistent(name, candidates, points, *args, **kwargs):
+        if estimators._refinement_family(name) is None or name.endswith(" with growing prior"):
+            return 0
+        return max(real(name, candidates, points, *args, **kwargs), 1)
+
+    monkeypatch.setattr(estimators, "_inconsistent_points", refinement_inconsistent)
+    cfg = IdentConfig.from_mapping({**FAST, "refine_rescue_ratio": 1e9, "filter_terms": "physics"})
+    est = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
+                                           add_measurement_noise(small, 40.0, seed=2))
+    meta = est.explicit_model_.metadata
+    rescue = meta["refinement_rescue"]
+    assert estimators._refinement_family(rescue["selected_before"]) is None and rescue["before_refinement"]
+    assert rescue["ratio"] < cfg.refine_rescue_ratio and rescue["inconsistent_rest_points"] == 0
+    assert rescue["run"] and "refined with growing prior" in est.candidates_
+    # the unrestricted fallback asks the same of the model the selection takes after the rescue
+    fallback = meta["refinement_unrestricted"]
+    assert fallback["before_refinement"] == (estimators._refinement_family(fallback["selected_before"]) is None)
+    assert fallback["run"] == (fallback["before_refinement"] or fallback["refinement_lost"])
+    # on clean records a re-fit from before the refinement wins on its merits: no rescue there
+    clean = make_estimator("pisml", cfg).fit(train, small)
+    assert "refinement_rescue" not in clean.explicit_model_.metadata
+    assert not clean.explicit_model_.metadata["refinement_unrestricted"]["run"] or \
+        clean.explicit_model_.metadata["refinement_unrestricted"]["refinement_lost"]
 
 
 def test_centred_couplings_are_the_same_field_and_make_the_plain_signal_costly_to_drop(train):

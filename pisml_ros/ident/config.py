@@ -531,7 +531,11 @@ class IdentConfig:
     # filter_terms) also runs where the model the selection would take is inconsistent with the
     # records' rest points, whatever its ratio: the scenarios' 5 kHz recording 0 at 40 dB (every
     # candidate inconsistent, 2.2x) from 4.83 / 6.29 to 0.442 / 0.236 % (estimators.PISML._noisy_rescue);
-    # of the 24 protocol recordings none has such a choice, so none changes
+    # of the 24 protocol recordings none has such a choice, so none changes. Since stop 72 also where
+    # that model is one from before the refinement (a backbone, the merged model, a re-fit): the
+    # plants' vendor-c recording 2 at 40 dB from the trained backbone (2.80 / 2.91 %, 203
+    # coefficients) to 0.630 / 2.79 % (88), fit 90 s against 48 s; the 24 protocol recordings' models
+    # all the same (bench/sweeps/beforerefinement-s72.json against floortol-restoffset-s70.json)
     refine_rescue_ratio: float = 2.5
     refine_rescue_stability_weight: float = 0.1
     # where the prior holds: "records" at the rest states of the small-signal and the training

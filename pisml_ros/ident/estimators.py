@@ -1020,7 +1020,13 @@ class PISML(_Estimator):
         5 kHz recording 0 at 40 dB: every candidate inconsistent at all 9 points, the chosen one
         unstable there at +6.6 to +8.5 1/s and at 2.2x the floor, 4.83 / 6.29 % IOD / OOD; with the
         rescue, its family's round 3, 0.442 / 0.236 % with 62 coefficients, no spurious mode, in
-        69 s against 43 s). Where the model chosen then still scores above the ratio and the second
+        69 s against 43 s). The same where that model is one from before the refinement (the
+        backbone, the merged model, a re-fit: :func:`_refinement_family` None), whatever its score:
+        on noisy records every refined candidate then ran away from the rest points or reproduced
+        the records worse (stop 72, the plants' vendor-c recording 2 at 40 dB: the trained backbone,
+        consistent at 1.39x the floor, 2.80 / 2.91 % IOD / OOD with 203 coefficients and W 3366 at
+        ug 0.8; with the rescue its family's long-window round 2, 0.630 / 2.79 % with 88, W 1216, in
+        90 s against 48 s). Where the model chosen then still scores above the ratio and the second
         refinement start was skipped (``IdentConfig.refine_starts`` "fallback": the first
         family was consistent with the rest points), the second start is refined too: stop 46,
         protocol seed 19 at 40 dB, the first start's refinement scored 29 % and its rescue no better
@@ -1036,9 +1042,10 @@ class PISML(_Estimator):
 
         chosen, ratio, misfits = chosen_ratio()
         # (with the same weight as the first refinement's it would only repeat it)
+        before_refinement = _refinement_family(chosen) is None
         record = {"selected_before": chosen, "error_pct": scores[chosen], "noise_floor_pct": floor, "ratio": ratio,
-                  "inconsistent_rest_points": misfits,
-                  "run": bool((ratio > cfg.refine_rescue_ratio or misfits > 0)
+                  "inconsistent_rest_points": misfits, "before_refinement": before_refinement,
+                  "run": bool((ratio > cfg.refine_rescue_ratio or misfits > 0 or before_refinement)
                               and cfg.refine_rescue_stability_weight != cfg.refine_growing_stability_weight)}
         explicit.metadata["refinement_rescue"] = record
         if record["run"]:
@@ -1156,7 +1163,8 @@ class PISML(_Estimator):
         coefficients, spurious modes at every ug), where the free rows' refinement gives 0.356 /
         0.272 % (stop 48, 107-113 s). On noisy data also where that model is inconsistent with the
         records' rest points (:func:`_inconsistent_points`), as the rescue (:meth:`_noisy_rescue`),
-        which runs before this and may already give a consistent one. Recorded in the metadata
+        which runs before this and may already give a consistent one, and where that model is one
+        from before the refinement (``before_refinement``). Recorded in the metadata
         (``refinement_unrestricted``) and the metrics."""
         cfg = self.config
         chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold,
@@ -1167,10 +1175,13 @@ class PISML(_Estimator):
         # which ran through at 1247 % (the hold: 33 %); the backbone was chosen, 2.55 / 10.2 % IOD / OOD)
         lost = not any(scores.get(name, np.inf) < hold for name in candidates if _refinement_family(name) is not None)
         ratio = scores[chosen] / max(floor, 1e-12) if floor is not None else None
-        # on noisy data, as the rescue: a model inconsistent with the records' rest points too
+        # on noisy data, as the rescue: a model inconsistent with the records' rest points too, or
+        # one from before the refinement
+        before_refinement = _refinement_family(chosen) is None
         record = {"selected_before": chosen, "error_pct": scores[chosen], "refinement_lost": lost,
-                  "ratio": ratio, "inconsistent_rest_points": misfits,
-                  "run": bool(lost or (ratio is not None and (ratio > cfg.refine_rescue_ratio or misfits > 0)))}
+                  "ratio": ratio, "inconsistent_rest_points": misfits, "before_refinement": before_refinement,
+                  "run": bool(lost or (ratio is not None and (ratio > cfg.refine_rescue_ratio or misfits > 0
+                                                              or before_refinement)))}
         explicit.metadata["refinement_unrestricted"] = record
         if not record["run"]:
             return
