@@ -1747,12 +1747,19 @@ def test_physics_filter_start_drops_cancelling_terms_and_keeps_the_starts_field_
     assert distance(restricted.coefficients, truth) < 1.05 * distance(coef, truth)
 
 
+def _fit_at_40_db(cfg, train, small):
+    """A PISML fit of ``cfg`` on the training and small-signal records with 40 dB measurement noise."""
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    return make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
+                                            add_measurement_noise(small, 40.0, seed=2))
+
+
 def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_is_lost(train, small, monkeypatch):
     # every restricted refinement breaks down here (as both did on vendor-c seed 0 at 40 dB): the
     # selection would take a start, so the starts are refined again with the filter rows free
     from pisml_ros.ident import estimators
     from pisml_ros.ident.library import filter_row_mask
-    from pisml_ros.plant.noise import add_measurement_noise
 
     real = estimators.refine_explicit
     restricted_starts = []
@@ -1765,8 +1772,7 @@ def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_
 
     monkeypatch.setattr(estimators, "refine_explicit", lost_when_restricted)
     cfg = IdentConfig.from_mapping({**FAST, "filter_terms": "physics", "refine_rescue_ratio": "inf"})
-    est = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
-                                           add_measurement_noise(small, 40.0, seed=2))
+    est = _fit_at_40_db(cfg, train, small)
     meta = est.explicit_model_.metadata
     record = meta["refinement_unrestricted"]
     assert restricted_starts and record["run"] and record["refinement_lost"]
@@ -1803,8 +1809,7 @@ def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_
         return real(model, *args, **kwargs)
 
     monkeypatch.setattr(estimators, "refine_explicit", drifting_when_restricted)
-    drifted = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
-                                               add_measurement_noise(small, 40.0, seed=2))
+    drifted = _fit_at_40_db(cfg, train, small)
     scored = drifted.explicit_model_.metadata["selection"]["training_error_pct"]
     record = drifted.explicit_model_.metadata["refinement_unrestricted"]
     assert np.isfinite(scored["refined"]) and scored["refined"] > drifted.explicit_model_.metadata["selection"][
@@ -1826,7 +1831,6 @@ def test_noisy_fit_whose_choice_is_inconsistent_with_the_rest_points_runs_the_re
     # rescue's ratio), and no second try ran. Here every candidate outside the rescue's family is
     # inconsistent with the rest points, at a ratio the rescue never reaches by itself
     from pisml_ros.ident import estimators
-    from pisml_ros.plant.noise import add_measurement_noise
 
     real = estimators._inconsistent_points
 
@@ -1836,8 +1840,7 @@ def test_noisy_fit_whose_choice_is_inconsistent_with_the_rest_points_runs_the_re
 
     monkeypatch.setattr(estimators, "_inconsistent_points", inconsistent_but_the_rescue)
     cfg = IdentConfig.from_mapping({**FAST, "refine_rescue_ratio": 1e9, "filter_terms": "physics"})
-    est = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
-                                           add_measurement_noise(small, 40.0, seed=2))
+    est = _fit_at_40_db(cfg, train, small)
     meta = est.explicit_model_.metadata
     rescue = meta["refinement_rescue"]
     assert rescue["ratio"] < cfg.refine_rescue_ratio and rescue["inconsistent_rest_points"] >= 1
@@ -1851,8 +1854,7 @@ def test_noisy_fit_whose_choice_is_inconsistent_with_the_rest_points_runs_the_re
     # refinement inconsistent, as those run the rescue whatever their score, tested below)
     monkeypatch.setattr(estimators, "_inconsistent_points",
                         lambda name, *args, **kwargs: int(estimators._refinement_family(name) is None))
-    kept = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
-                                            add_measurement_noise(small, 40.0, seed=2))
+    kept = _fit_at_40_db(cfg, train, small)
     meta = kept.explicit_model_.metadata
     assert not meta["refinement_rescue"]["run"] and meta["refinement_rescue"]["inconsistent_rest_points"] == 0
     assert not meta["refinement_unrestricted"]["run"] or meta["refinement_unrestricted"]["refinement_lost"]
@@ -1866,7 +1868,6 @@ def test_noisy_fit_whose_choice_is_from_before_the_refinement_runs_the_rescue(tr
     # Here every refinement candidate outside the rescue's family is inconsistent with the rest
     # points and every other consistent, at a ratio the rescue never reaches by itself
     from pisml_ros.ident import estimators
-    from pisml_ros.plant.noise import add_measurement_noise
 
     real = estimators._inconsistent_points
 
@@ -1877,8 +1878,7 @@ def test_noisy_fit_whose_choice_is_from_before_the_refinement_runs_the_rescue(tr
 
     monkeypatch.setattr(estimators, "_inconsistent_points", refinement_inconsistent)
     cfg = IdentConfig.from_mapping({**FAST, "refine_rescue_ratio": 1e9, "filter_terms": "physics"})
-    est = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
-                                           add_measurement_noise(small, 40.0, seed=2))
+    est = _fit_at_40_db(cfg, train, small)
     meta = est.explicit_model_.metadata
     rescue = meta["refinement_rescue"]
     assert estimators._refinement_family(rescue["selected_before"]) is None and rescue["before_refinement"]
