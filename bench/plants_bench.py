@@ -62,6 +62,8 @@ def plant_setup(name: str):
     from pisml_ros.plant.parameters import PlantParameters
 
     return PlantParameters().replace(**PLANT_PARAMETERS.get(name, {})), PLANT_EFFECTS.get(name, {})
+
+
 METHODS = ("pisml", "mod-sindy")
 
 

@@ -1042,10 +1042,9 @@ class PISML(_Estimator):
 
         chosen, ratio, misfits = chosen_ratio()
         # (with the same weight as the first refinement's it would only repeat it)
-        before_refinement = _refinement_family(chosen) is None
         record = {"selected_before": chosen, "error_pct": scores[chosen], "noise_floor_pct": floor, "ratio": ratio,
-                  "inconsistent_rest_points": misfits, "before_refinement": before_refinement,
-                  "run": bool((ratio > cfg.refine_rescue_ratio or misfits > 0 or before_refinement)
+                  "inconsistent_rest_points": misfits, "before_refinement": _refinement_family(chosen) is None,
+                  "run": bool(_noisy_choice_needs_retry(cfg, chosen, ratio, misfits)
                               and cfg.refine_rescue_stability_weight != cfg.refine_growing_stability_weight)}
         explicit.metadata["refinement_rescue"] = record
         if record["run"]:
@@ -1175,13 +1174,11 @@ class PISML(_Estimator):
         # which ran through at 1247 % (the hold: 33 %); the backbone was chosen, 2.55 / 10.2 % IOD / OOD)
         lost = not any(scores.get(name, np.inf) < hold for name in candidates if _refinement_family(name) is not None)
         ratio = scores[chosen] / max(floor, 1e-12) if floor is not None else None
-        # on noisy data, as the rescue: a model inconsistent with the records' rest points too, or
-        # one from before the refinement
-        before_refinement = _refinement_family(chosen) is None
+        # on noisy data, the rescue's question
         record = {"selected_before": chosen, "error_pct": scores[chosen], "refinement_lost": lost,
-                  "ratio": ratio, "inconsistent_rest_points": misfits, "before_refinement": before_refinement,
-                  "run": bool(lost or (ratio is not None and (ratio > cfg.refine_rescue_ratio or misfits > 0
-                                                              or before_refinement)))}
+                  "ratio": ratio, "inconsistent_rest_points": misfits,
+                  "before_refinement": _refinement_family(chosen) is None,
+                  "run": bool(lost or (ratio is not None and _noisy_choice_needs_retry(cfg, chosen, ratio, misfits)))}
         explicit.metadata["refinement_unrestricted"] = record
         if not record["run"]:
             return
@@ -1234,6 +1231,16 @@ def _would_choose_misfits(template: ExplicitModel, candidates: dict, scores: dic
                                       tolerance_floor=tolerance_floor).metadata["selection"]
     chosen = selection["chosen"]
     return chosen, int(selection.get("inconsistent_rest_points", {}).get(chosen) or 0)
+
+
+def _noisy_choice_needs_retry(cfg: IdentConfig, chosen: str, ratio: float, misfits: int) -> bool:
+    """On noisy records, whether the model the selection would take (``chosen``) calls for another
+    refinement (the rescue, :meth:`PISML._noisy_rescue`, and the unrestricted fallback,
+    :meth:`PISML._unrestricted_fallback`, ask the same question): it scores above
+    ``cfg.refine_rescue_ratio`` times the noise floor (``ratio``), or it is inconsistent with the
+    records' rest points at one or more (``misfits``), or it is a model from before the refinement
+    (:func:`_refinement_family` None)."""
+    return ratio > cfg.refine_rescue_ratio or misfits > 0 or _refinement_family(chosen) is None
 
 
 def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
