@@ -1895,6 +1895,40 @@ def test_noisy_fit_whose_choice_is_from_before_the_refinement_runs_the_rescue(tr
         clean.explicit_model_.metadata["refinement_unrestricted"]["refinement_lost"]
 
 
+def test_the_second_start_runs_where_the_first_starts_refinement_is_lost(train, small, monkeypatch):
+    # stop 73, vendor-c recording 1 at 40 dB: both of the first start's refined models blew up, its
+    # round 2 came out consistent near the floor but missed an LCL resonance; the second start runs
+    from pisml_ros.ident import estimators
+    from pisml_ros.ident.estimators import LONG_BRANCH_SUFFIX, _unpruned_refinement_lost
+
+    hold = 40.0
+    assert _unpruned_refinement_lost({"refined": np.inf, "refined" + LONG_BRANCH_SUFFIX: 52.0}, hold)
+    assert _unpruned_refinement_lost({"refined": np.nan, "pruned +0.1 %": 2.0}, hold)  # no long branch
+    # one of the two runs through better than the hold: not lost, whatever its prune rounds score
+    assert not _unpruned_refinement_lost({"refined": np.inf, "refined" + LONG_BRANCH_SUFFIX: 3.0}, hold)
+    assert not _unpruned_refinement_lost({"refined": 2.5}, hold)
+    # no refinement from that start at all: nothing to call lost (the selection decides)
+    assert not _unpruned_refinement_lost({"pruned +0.1 %": 2.0}, hold)
+    # each start by its own models: another start's family, by its suffix
+    suffix = " from noise-compensated backbone"
+    assert _unpruned_refinement_lost({"refined": np.inf, "refined" + suffix: 2.0}, hold)
+    assert _unpruned_refinement_lost({"refined": 2.0, "refined" + suffix: np.inf}, hold, suffix)
+    # in a fit with the first start's family otherwise sufficient (refine_starts "fallback")
+    monkeypatch.setattr(estimators, "_refinement_suffices", lambda *args, **kwargs: True)
+    monkeypatch.setattr(estimators, "_unpruned_refinement_lost", lambda scores, hold, suffix="": True)
+    cfg = IdentConfig.from_mapping({**FAST, "refine_starts": "fallback", "refine_rescue_ratio": "inf"})
+    est = _fit_at_40_db(cfg, train, small)
+    second = est.explicit_model_.metadata["refinement_second_start"]
+    assert second["run"] and second["first_lost"]
+    assert f"refined from {second['start']}" in est.explicit_model_.metadata["selection"]["training_error_pct"]
+    # and where it is not lost, the first family suffices: the second start is skipped
+    monkeypatch.setattr(estimators, "_unpruned_refinement_lost", lambda scores, hold, suffix="": False)
+    kept = _fit_at_40_db(cfg, train, small)
+    second = kept.explicit_model_.metadata["refinement_second_start"]
+    assert not second["run"] and not second["first_lost"]
+    assert f"refined from {second['start']}" not in kept.candidates_
+
+
 def test_centred_couplings_are_the_same_field_and_make_the_plain_signal_costly_to_drop(train):
     from pisml_ros.ident.estimators import _couplings_centred, frequency_centre
     from pisml_ros.ident.library import centred_terms, rebased

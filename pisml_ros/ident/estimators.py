@@ -916,8 +916,11 @@ class PISML(_Estimator):
                 # does not give a model consistent with the records' rest points (IdentConfig.refine_starts)
                 add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
                     "refinement", 0.7 + 0.28 * 0.5 * fraction, losses=losses)))
-                needed = not _refinement_suffices(explicit, candidates, scores, cfg, verdicts, hold, tolerance_floor)
-                explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": needed}
+                first_lost = _unpruned_refinement_lost(scores, hold)
+                needed = first_lost or not _refinement_suffices(explicit, candidates, scores, cfg, verdicts, hold,
+                                                                tolerance_floor)
+                explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": needed,
+                                                                "first_lost": first_lost}
                 if needed:
                     add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
                         "refinement", 0.84 + 0.14 * fraction, losses=losses)))
@@ -1241,6 +1244,19 @@ def _noisy_choice_needs_retry(cfg: IdentConfig, chosen: str, ratio: float, misfi
     records' rest points at one or more (``misfits``), or it is a model from before the refinement
     (:func:`_refinement_family` None)."""
     return ratio > cfg.refine_rescue_ratio or misfits > 0 or _refinement_family(chosen) is None
+
+
+def _unpruned_refinement_lost(scores: dict, hold: float, suffix: str = "") -> bool:
+    """Whether the refinement from one start (``suffix``, "" for the first) broke down: neither of its
+    models before pruning (``refined``, and ``refined at long windows`` where that branch ran)
+    runs freely through the records better than holding their first states (``hold``). Its prune
+    rounds, fitted on from there, can still come out consistent with the records' rest points and
+    near the noise floor while missing a mode the records barely show: stop 73, the plants'
+    vendor-c recording 1 at 40 dB, both refined models blew up (inf, rest max Re +131 1/s), the
+    family's round 2 was chosen at 1.32x the floor (1.21 / 3.75 % IOD / OOD, W 1433 at ug 0.8: one
+    of the two LCL resonances lost), where the second start's round 2 gives 0.428 / 0.895 %, W 17."""
+    names = [name for name in ("refined" + suffix, "refined" + LONG_BRANCH_SUFFIX + suffix) if name in scores]
+    return bool(names) and not any(scores[name] < hold for name in names)
 
 
 def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
