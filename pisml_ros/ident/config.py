@@ -228,7 +228,14 @@ class IdentConfig:
     # ones flagged: 18 against 11 of about 210). Fit median 56.5 s against 38.5 s (2 cores).
     # Stop 69: "fallback" again, with the first start's long-window branch (refine_long_branch) and
     # selection_rest_offset 0.1: 17 of 24 as "auto", none spurious (2), fits median 43.5 s against
-    # 59.0 (bench/sweeps/longbranch-restoffset-s69.json; see refine_long_branch)
+    # 59.0 (bench/sweeps/longbranch-restoffset-s69.json; see refine_long_branch). Since stop 73
+    # "fallback" also runs the second start where the first start's refinement is lost (neither
+    # unpruned refined model beats holding the records' first states, estimators._unpruned_refinement_lost):
+    # the plants' vendor-c recording 1 at 40 dB from 1.21 / 3.75 % (the first family's round 2,
+    # consistent at 1.32x the floor, W 1433: an LCL resonance lost) to 0.428 / 0.895 % (71
+    # coefficients, W 17), fit 75 s against 50 s (`bench/candidates.py --plant vendor-c --seed 1 --noise 40`);
+    # vendor-c recording 0 (lost too, but its second start ran already) the same model. No protocol
+    # recording 0-23 has such a first refinement (their refined models score 1.9-16 % against holds of ~40 %)
     refine_starts: str = "fallback"
     # where both starts run side by side: the second (the noise-compensated backbone, known right
     # after the backbone) starts beside the hybrid's training instead of after the distillation; the
@@ -537,6 +544,14 @@ class IdentConfig:
     # coefficients) to 0.630 / 2.79 % (88), fit 90 s against 48 s; the 24 protocol recordings' models
     # all the same (bench/sweeps/beforerefinement-s72.json against floortol-restoffset-s70.json)
     refine_rescue_ratio: float = 2.5
+    # Stop 73 (`bench/candidates.py ... --noise 40 --set refine_rescue_stability_weight=W`, the fits
+    # where the rescue runs): 0.03 kept both of vendor-c's LCL resonances on its recording 2, 0.547 /
+    # 1.10 % (64 coefficients, W 14) against 0.630 / 2.79 % (88, W 1216); protocol seed 22 0.662 /
+    # 0.170 against 0.797 / 0.317 %; but vendor-c recording 0 took the unrestricted fallback, 0.233 /
+    # 0.401 % with 134 coefficients (fit 195 s) against 0.182 / 0.789 % with 79, and the scenarios' 5 kHz
+    # recording 1 0.945 / 0.718 % spurious at ug 0.2 against 0.614 / 0.370 %; 5 kHz recording 0 and
+    # 8 x 60 ms recording 1 the same. 0.01 on vendor-c recording 2: the family blew up (inf), the
+    # unrestricted fallback chosen. Mixed, and steep in the weight: not taken
     refine_rescue_stability_weight: float = 0.1
     # where the prior holds: "records" at the rest states of the small-signal and the training
     # records (a record starts where the plant sat at rest), "smallsignal" at the small-signal
