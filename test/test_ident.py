@@ -19,10 +19,11 @@ from pisml_ros.plant import InverterPlant
 from pisml_ros.plant.scenarios import generate, schedules_for
 from pisml_ros.signals import INPUT_NAMES, SCORED_STATES, STATE_NAMES
 
-# a small, fast PISML configuration: the pipeline end to end in seconds
+# a small, fast PISML configuration: the pipeline end to end in seconds (one prune round a family:
+# a 40 dB fit 24 s against 37 s with the default three; the rounds' own tests set their number)
 FAST = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
         "refine_growing_evaluations": "2,2,2", "refine_polish_evaluations": "2,2", "refine_long_branch_evaluations": 2,
-        "distill_max_terms": 2}
+        "refine_prune_rounds": 1, "distill_max_terms": 2}
 
 
 @contextlib.contextmanager
@@ -1910,13 +1911,11 @@ def test_the_second_start_runs_where_the_first_starts_refinement_is_lost(train, 
     assert not _unpruned_refinement_lost({"refined": 2.5}, hold)
     # no refinement from that start at all: nothing to call lost (the selection decides)
     assert not _unpruned_refinement_lost({"pruned +0.1 %": 2.0}, hold)
-    # each start by its own models: another start's family, by its suffix
-    suffix = " from noise-compensated backbone"
-    assert _unpruned_refinement_lost({"refined": np.inf, "refined" + suffix: 2.0}, hold)
-    assert _unpruned_refinement_lost({"refined": 2.0, "refined" + suffix: np.inf}, hold, suffix)
+    # the first start by its own models: another start's family does not count
+    assert _unpruned_refinement_lost({"refined": np.inf, "refined from noise-compensated backbone": 2.0}, hold)
     # in a fit with the first start's family otherwise sufficient (refine_starts "fallback")
     monkeypatch.setattr(estimators, "_refinement_suffices", lambda *args, **kwargs: True)
-    monkeypatch.setattr(estimators, "_unpruned_refinement_lost", lambda scores, hold, suffix="": True)
+    monkeypatch.setattr(estimators, "_unpruned_refinement_lost", lambda scores, hold: True)
     cfg = IdentConfig.from_mapping({**FAST, "refine_starts": "fallback", "refine_rescue_ratio": "inf"})
     est = _fit_at_40_db(cfg, train, small)
     second = est.explicit_model_.metadata["refinement_second_start"]

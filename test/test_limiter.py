@@ -186,7 +186,7 @@ def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduc
     small = generate(plant, smallsignal_schedules(0.8), 0.1)
     test = generate(plant, evaluation_schedules(0.04), 0.04)
     fast = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
-            "distill_max_terms": 2}
+            "refine_prune_rounds": 1, "distill_max_terms": 2}
     from pisml_ros.ident import estimators
 
     real, refined = estimators.refine_explicit, set()

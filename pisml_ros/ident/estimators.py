@@ -1175,7 +1175,7 @@ class PISML(_Estimator):
         # that reproduces the records better than holding their first states. Stop 63, vendor-c seed 3
         # at 40 dB with both starts side by side: every refinement broke down but one prune round,
         # which ran through at 1247 % (the hold: 33 %); the backbone was chosen, 2.55 / 10.2 % IOD / OOD)
-        lost = not any(scores.get(name, np.inf) < hold for name in candidates if _refinement_family(name) is not None)
+        lost = not _any_beats_hold(scores, [name for name in candidates if _refinement_family(name) is not None], hold)
         ratio = scores[chosen] / max(floor, 1e-12) if floor is not None else None
         # on noisy data, the rescue's question
         record = {"selected_before": chosen, "error_pct": scores[chosen], "refinement_lost": lost,
@@ -1246,17 +1246,22 @@ def _noisy_choice_needs_retry(cfg: IdentConfig, chosen: str, ratio: float, misfi
     return ratio > cfg.refine_rescue_ratio or misfits > 0 or _refinement_family(chosen) is None
 
 
-def _unpruned_refinement_lost(scores: dict, hold: float, suffix: str = "") -> bool:
-    """Whether the refinement from one start (``suffix``, "" for the first) broke down: neither of its
-    models before pruning (``refined``, and ``refined at long windows`` where that branch ran)
+def _any_beats_hold(scores: dict, names, hold: float) -> bool:
+    """Whether any of ``names`` (missing ones count as lost) runs freely through the records better
+    than holding their first states (free-run error below ``hold``)."""
+    return any(scores.get(name, np.inf) < hold for name in names)
+
+
+def _unpruned_refinement_lost(scores: dict, hold: float) -> bool:
+    """Whether the refinement from the first start broke down: neither of its models before pruning (``refined``, and ``refined at long windows`` where that branch ran)
     runs freely through the records better than holding their first states (``hold``). Its prune
     rounds, fitted on from there, can still come out consistent with the records' rest points and
     near the noise floor while missing a mode the records barely show: stop 73, the plants'
     vendor-c recording 1 at 40 dB, both refined models blew up (inf, rest max Re +131 1/s), the
     family's round 2 was chosen at 1.32x the floor (1.21 / 3.75 % IOD / OOD, W 1433 at ug 0.8: one
     of the two LCL resonances lost), where the second start's round 2 gives 0.428 / 0.895 %, W 17."""
-    names = [name for name in ("refined" + suffix, "refined" + LONG_BRANCH_SUFFIX + suffix) if name in scores]
-    return bool(names) and not any(scores[name] < hold for name in names)
+    names = [name for name in ("refined", "refined" + LONG_BRANCH_SUFFIX) if name in scores]
+    return bool(names) and not _any_beats_hold(scores, names, hold)
 
 
 def _refinement_suffices(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
