@@ -91,6 +91,8 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
     with pytest.raises(ConfigError, match="refine_rescue_ratio must be >= 0"):
         IdentConfig.from_mapping({"refine_rescue_ratio": "nan"})
     assert IdentConfig.from_mapping({"refine_rescue_ratio": "inf"}).refine_rescue_ratio == math.inf
+    with pytest.raises(ConfigError, match="refine_retry_ratio must be >= 0"):
+        IdentConfig.from_mapping({"refine_retry_ratio": -1})
     assert IdentConfig.from_mapping({"selection_grid_stability": "false"}).selection_grid_stability is False
     with pytest.raises(ConfigError, match="selection_round_rise must be >= 0"):
         IdentConfig.from_mapping({"selection_round_rise": "nan"})
@@ -393,7 +395,8 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     # noisy records are refined in growing windows anyway: no fallback on top
     from pisml_ros.plant.noise import add_measurement_noise
 
-    # (refine_rescue_ratio 0: the rescue of noisy fits always runs here, tested below; refine_starts
+    # (refine_rescue_ratio and refine_retry_ratio 0: the rescue of noisy fits and the second start after
+    # it always run here, tested below; refine_starts
     # fallback with the first start's family taken as sufficient and its refinement as not lost (FAST
     # settings can lose it), so that the second start is skipped and comes after the rescue)
     from pisml_ros.ident import estimators
@@ -402,7 +405,8 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     monkeypatch.setattr(estimators, "_unpruned_refinement_lost", lambda *args, **kwargs: False)
     updates.clear()
     noisy = make_estimator("pisml", IdentConfig.from_mapping(
-        {**FAST, "clean_growing_error": 0.0, "refine_rescue_ratio": 0.0, "refine_starts": "fallback"})).fit(
+        {**FAST, "clean_growing_error": 0.0, "refine_rescue_ratio": 0.0, "refine_retry_ratio": 0.0,
+         "refine_starts": "fallback"})).fit(
         add_measurement_noise(train, 40.0, seed=1), add_measurement_noise(small, 40.0, seed=2),
         callback=updates.append)
     progress = [u.progress for u in updates]
@@ -429,7 +433,7 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     assert noisy.candidates_["refined"].metadata["refinement"]["growing_windows"]["stability_weight"] == 0
     assert prior["start"] == noisy.candidates_["refined"].metadata["refinement"]["start"]
     assert noisy.metrics_["refinement_rescue"] == 1.0
-    # still above the ratio after the rescue (0 here: always): the second start, skipped after the
+    # still above refine_retry_ratio after the rescue (0 here: always): the second start, skipped after the
     # first start's family, is refined too and its family competes
     second = noisy.explicit_model_.metadata["refinement_second_start"]
     assert rescue["ratio_after"] > 0 and second["run"] and second["after_rescue"]
@@ -1841,7 +1845,8 @@ def test_noisy_fit_whose_choice_is_inconsistent_with_the_rest_points_runs_the_re
         return count if name.endswith(" with growing prior") else max(count, 1)
 
     monkeypatch.setattr(estimators, "_inconsistent_points", inconsistent_but_the_rescue)
-    cfg = IdentConfig.from_mapping({**FAST, "refine_rescue_ratio": 1e9, "filter_terms": "physics"})
+    cfg = IdentConfig.from_mapping({**FAST, "refine_rescue_ratio": 1e9, "refine_retry_ratio": 1e9,
+                                    "filter_terms": "physics"})
     est = _fit_at_40_db(cfg, train, small)
     meta = est.explicit_model_.metadata
     rescue = meta["refinement_rescue"]
@@ -1850,7 +1855,7 @@ def test_noisy_fit_whose_choice_is_inconsistent_with_the_rest_points_runs_the_re
     assert set(rescue["added"]) <= set(meta["selection"]["training_error_pct"])
     # the unrestricted fallback asks the same of the model the selection takes after the rescue
     fallback = meta["refinement_unrestricted"]
-    assert fallback["ratio"] < cfg.refine_rescue_ratio
+    assert fallback["ratio"] < cfg.refine_retry_ratio
     assert fallback["run"] == (fallback["inconsistent_rest_points"] > 0 or fallback["refinement_lost"])
     # consistent refined choices below the ratio: neither runs (the candidates from before the
     # refinement inconsistent, as those run the rescue whatever their score, tested below)
@@ -1879,7 +1884,8 @@ def test_noisy_fit_whose_choice_is_from_before_the_refinement_runs_the_rescue(tr
         return max(real(name, candidates, points, *args, **kwargs), 1)
 
     monkeypatch.setattr(estimators, "_inconsistent_points", refinement_inconsistent)
-    cfg = IdentConfig.from_mapping({**FAST, "refine_rescue_ratio": 1e9, "filter_terms": "physics"})
+    cfg = IdentConfig.from_mapping({**FAST, "refine_rescue_ratio": 1e9, "refine_retry_ratio": 1e9,
+                                    "filter_terms": "physics"})
     est = _fit_at_40_db(cfg, train, small)
     meta = est.explicit_model_.metadata
     rescue = meta["refinement_rescue"]
@@ -1895,6 +1901,23 @@ def test_noisy_fit_whose_choice_is_from_before_the_refinement_runs_the_rescue(tr
     assert "refinement_rescue" not in clean.explicit_model_.metadata
     assert not clean.explicit_model_.metadata["refinement_unrestricted"]["run"] or \
         clean.explicit_model_.metadata["refinement_unrestricted"]["refinement_lost"]
+
+
+def test_the_rescue_asks_for_less_than_the_further_tries():
+    # stop 74: the rescue at 2.0x the noise floor (protocol recording 7 at 2.13x, 1.956 / 0.79 % IOD /
+    # OOD without it, 0.278 / 0.667 % with it), the second start after it and the unrestricted
+    # fallback at 2.5x (the clamp plant's recording 1 at 2.17x after its rescue: both ran, the same model)
+    from pisml_ros.ident.estimators import _noisy_choice_needs_retry
+
+    cfg = IdentConfig()
+    assert cfg.refine_rescue_ratio == 2.0 < cfg.refine_retry_ratio == 2.5
+    chosen = "pruned +0.1 % x3 at long windows"
+    assert _noisy_choice_needs_retry(chosen, 2.13, 0, cfg.refine_rescue_ratio)
+    assert not _noisy_choice_needs_retry(chosen, 2.13, 0, cfg.refine_retry_ratio)
+    assert not _noisy_choice_needs_retry(chosen, 1.79, 0, cfg.refine_rescue_ratio)
+    # inconsistent with a rest point, or from before the refinement: whatever the ratio
+    assert _noisy_choice_needs_retry(chosen, 1.0, 1, math.inf)
+    assert _noisy_choice_needs_retry("trained backbone", 1.0, 0, math.inf)
 
 
 def test_the_second_start_runs_where_the_first_starts_refinement_is_lost(train, small, monkeypatch):

@@ -1029,7 +1029,7 @@ class PISML(_Estimator):
         the records worse (stop 72, the plants' vendor-c recording 2 at 40 dB: the trained backbone,
         consistent at 1.39x the floor, 2.80 / 2.91 % IOD / OOD with 203 coefficients and W 3366 at
         ug 0.8; with the rescue its family's long-window round 2, 0.630 / 2.79 % with 88, W 1216, in
-        90 s against 48 s). Where the model chosen then still scores above the ratio and the second
+        90 s against 48 s). Where the model chosen then still scores above ``refine_retry_ratio`` and the second
         refinement start was skipped (``IdentConfig.refine_starts`` "fallback": the first
         family was consistent with the rest points), the second start is refined too: stop 46,
         protocol seed 19 at 40 dB, the first start's refinement scored 29 % and its rescue no better
@@ -1047,7 +1047,7 @@ class PISML(_Estimator):
         # (with the same weight as the first refinement's it would only repeat it)
         record = {"selected_before": chosen, "error_pct": scores[chosen], "noise_floor_pct": floor, "ratio": ratio,
                   "inconsistent_rest_points": misfits, "before_refinement": _refinement_family(chosen) is None,
-                  "run": bool(_noisy_choice_needs_retry(cfg, chosen, ratio, misfits)
+                  "run": bool(_noisy_choice_needs_retry(chosen, ratio, misfits, cfg.refine_rescue_ratio)
                               and cfg.refine_rescue_stability_weight != cfg.refine_growing_stability_weight)}
         explicit.metadata["refinement_rescue"] = record
         if record["run"]:
@@ -1059,7 +1059,7 @@ class PISML(_Estimator):
             ratio = chosen_ratio()[1]
             record["ratio_after"] = ratio
         second = explicit.metadata.get("refinement_second_start")
-        if ratio > cfg.refine_rescue_ratio and second is not None and not second["run"] and len(starts) > 1:
+        if ratio > cfg.refine_retry_ratio and second is not None and not second["run"] and len(starts) > 1:
             add(1, *refine_from(starts[1], self._progress_on()))
             second.update(run=True, after_rescue=True)
             self.metrics_["refinement_starts_run"] = 2.0
@@ -1157,7 +1157,7 @@ class PISML(_Estimator):
         """With ``filter_terms`` "physics": where no restricted refinement gives a model that runs
         freely through the records better than holding their first states (every one broke down,
         blew up or drifted off), or where on noisy data the
-        model the selection would take still scores above ``refine_rescue_ratio`` times what the
+        model the selection would take still scores above ``refine_retry_ratio`` times what the
         noise alone leaves (``floor``; None on clean data), each refinement start (at most two) is
         refined again with the output filter's rows free (``filter_terms`` "any"), and those
         families (``… unrestricted``) join the candidates. Stop 47, vendor-c seed 0 at 40 dB: both
@@ -1181,7 +1181,8 @@ class PISML(_Estimator):
         record = {"selected_before": chosen, "error_pct": scores[chosen], "refinement_lost": lost,
                   "ratio": ratio, "inconsistent_rest_points": misfits,
                   "before_refinement": _refinement_family(chosen) is None,
-                  "run": bool(lost or (ratio is not None and _noisy_choice_needs_retry(cfg, chosen, ratio, misfits)))}
+                  "run": bool(lost or (ratio is not None and
+                                       _noisy_choice_needs_retry(chosen, ratio, misfits, cfg.refine_retry_ratio)))}
         explicit.metadata["refinement_unrestricted"] = record
         if not record["run"]:
             return
@@ -1236,14 +1237,15 @@ def _would_choose_misfits(template: ExplicitModel, candidates: dict, scores: dic
     return chosen, int(selection.get("inconsistent_rest_points", {}).get(chosen) or 0)
 
 
-def _noisy_choice_needs_retry(cfg: IdentConfig, chosen: str, ratio: float, misfits: int) -> bool:
+def _noisy_choice_needs_retry(chosen: str, ratio: float, misfits: int, limit: float) -> bool:
     """On noisy records, whether the model the selection would take (``chosen``) calls for another
     refinement (the rescue, :meth:`PISML._noisy_rescue`, and the unrestricted fallback,
     :meth:`PISML._unrestricted_fallback`, ask the same question): it scores above
-    ``cfg.refine_rescue_ratio`` times the noise floor (``ratio``), or it is inconsistent with the
+    ``limit`` times the noise floor (``ratio``; ``refine_rescue_ratio`` for the rescue,
+    ``refine_retry_ratio`` for the further tries), or it is inconsistent with the
     records' rest points at one or more (``misfits``), or it is a model from before the refinement
     (:func:`_refinement_family` None)."""
-    return ratio > cfg.refine_rescue_ratio or misfits > 0 or _refinement_family(chosen) is None
+    return ratio > limit or misfits > 0 or _refinement_family(chosen) is None
 
 
 def _any_beats_hold(scores: dict, names, hold: float) -> bool:
