@@ -395,10 +395,10 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     # noisy records are refined in growing windows anyway: no fallback on top
     from pisml_ros.plant.noise import add_measurement_noise
 
-    # (refine_rescue_ratio and refine_retry_ratio 0: the rescue of noisy fits and the second start after
-    # it always run here, tested below; refine_starts
-    # fallback with the first start's family taken as sufficient and its refinement as not lost (FAST
-    # settings can lose it), so that the second start is skipped and comes after the rescue)
+    # (refine_rescue_ratio and refine_retry_ratio 0: the rescue of noisy fits and the second start
+    # after it always run here, tested below; refine_starts fallback with the first start's family
+    # taken as sufficient and its refinement as not lost (FAST settings can lose it), so that the
+    # second start is skipped and comes after the rescue)
     from pisml_ros.ident import estimators
 
     monkeypatch.setattr(estimators, "_refinement_suffices", lambda *args, **kwargs: True)
@@ -433,8 +433,8 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     assert noisy.candidates_["refined"].metadata["refinement"]["growing_windows"]["stability_weight"] == 0
     assert prior["start"] == noisy.candidates_["refined"].metadata["refinement"]["start"]
     assert noisy.metrics_["refinement_rescue"] == 1.0
-    # still above refine_retry_ratio after the rescue (0 here: always): the second start, skipped after the
-    # first start's family, is refined too and its family competes
+    # still above refine_retry_ratio after the rescue (0 here: always): the second start, skipped
+    # after the first start's family, is refined too and its family competes
     second = noisy.explicit_model_.metadata["refinement_second_start"]
     assert rescue["ratio_after"] > 0 and second["run"] and second["after_rescue"]
     assert f"refined from {second['start']}" in noisy.candidates_

@@ -1029,8 +1029,8 @@ class PISML(_Estimator):
         the records worse (stop 72, the plants' vendor-c recording 2 at 40 dB: the trained backbone,
         consistent at 1.39x the floor, 2.80 / 2.91 % IOD / OOD with 203 coefficients and W 3366 at
         ug 0.8; with the rescue its family's long-window round 2, 0.630 / 2.79 % with 88, W 1216, in
-        90 s against 48 s). Where the model chosen then still scores above ``refine_retry_ratio`` and the second
-        refinement start was skipped (``IdentConfig.refine_starts`` "fallback": the first
+        90 s against 48 s). Where the model chosen then still scores above ``refine_retry_ratio`` and
+        the second refinement start was skipped (``IdentConfig.refine_starts`` "fallback": the first
         family was consistent with the rest points), the second start is refined too: stop 46,
         protocol seed 19 at 40 dB, the first start's refinement scored 29 % and its rescue no better
         than 2.6x the floor (chosen: 2.06 / 2.36 % IOD / OOD, 146 coefficients), where the second
@@ -1255,8 +1255,9 @@ def _any_beats_hold(scores: dict, names, hold: float) -> bool:
 
 
 def _unpruned_refinement_lost(scores: dict, hold: float) -> bool:
-    """Whether the refinement from the first start broke down: neither of its models before pruning (``refined``, and ``refined at long windows`` where that branch ran)
-    runs freely through the records better than holding their first states (``hold``). Its prune
+    """Whether the refinement from the first start broke down: neither of its models before pruning
+    (``refined``, and ``refined at long windows`` where that branch ran) runs freely through the
+    records better than holding their first states (``hold``). Its prune
     rounds, fitted on from there, can still come out consistent with the records' rest points and
     near the noise floor while missing a mode the records barely show: stop 73, the plants'
     vendor-c recording 1 at 40 dB, both refined models blew up (inf, rest max Re +131 1/s), the
