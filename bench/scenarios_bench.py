@@ -117,11 +117,13 @@ def main(argv=None) -> int:
     earlier = json.loads(Path(args.out).read_text()) if kept and Path(args.out).exists() else {}
     previous = earlier.get("runs", [])
     # each kept row names the run it comes from: the earlier file's own run, or, for a row that file
-    # kept itself, the run it names (files written before rows named theirs: its top-level kept_from)
+    # kept itself, the run it names (files written before rows named theirs: the one run of their
+    # top-level kept_from, a dict; since then kept_from lists the rows' runs)
     own = {k: earlier[k] for k in ("command", "date", "total_seconds") if k in earlier}
+    legacy = earlier.get("kept_from") if isinstance(earlier.get("kept_from"), dict) else None
 
     def keep(r):
-        source = r.get("source") or ((earlier.get("kept_from") or own) if r.get("kept") else own)
+        source = r.get("source") or ((legacy or own) if r.get("kept") else own)
         return dict(r, kept=True, source=source)
 
     if args.keep_other_noise:
