@@ -1461,6 +1461,66 @@ def test_selection_tolerance_counts_from_the_noise_floor_on_noisy_records():
         IdentConfig.from_mapping({"selection_floor_tolerance": -1})
 
 
+def test_selection_passes_over_a_model_whose_slow_mode_barely_decays_at_the_smallsignal_point():
+    """``selection_decay_margin``: on noisy records a choice whose slowest mode at the small-signal
+    records' rest point decays slower than the margin gives way to the candidates within the floor
+    tolerance of the best score that decay at least that fast there (stop 75, protocol recording 1:
+    -0.028 1/s at ug 0.8 where the plant is at -0.73)."""
+    from pisml_ros.ident.estimators import _configured_selection, _selected
+
+    def model(rate, extra=0):  # x' = rate (ug - x): the equilibrium x = ug, its mode at -rate
+        coef = np.zeros((2 + extra, 1))
+        coef[:2, 0] = [rate, -rate]
+        coef[2:, 0] = 1e-9  # coefficients that do nothing at rest, so that the models differ in size
+        return ExplicitModel(("x",), ("ug",), ["ug", "x", "x**3", "ug**3", "x*ug"][:2 + extra], coef, {})
+
+    points = [{"inputs": [0.8], "state": [0.8], "smallsignal": True}, {"inputs": [1.0], "state": [1.0]}]
+    template = ExplicitModel(("x",), ("ug",), ["ug", "x"], np.zeros((2, 1)), {"reference_points": points})
+    candidates = {"refined": model(0.03, 3), "pruned +0.1 % x3": model(0.03),
+                  "pruned +0.1 % at long windows": model(0.5, 2), "pruned +0.1 % x2 at long windows": model(0.5, 1)}
+    scores = {"refined": np.inf, "pruned +0.1 % x3": 2.8, "pruned +0.1 % at long windows": 3.3,
+              "pruned +0.1 % x2 at long windows": 2.9}
+    noisy = {"tolerance": 0.5, "unstable_rate": 1.0, "tolerance_floor": 1.8, "floor_tolerance": 1.0}
+
+    def chosen(scores=scores, template=template, **kwargs):
+        return _selected(template, candidates, scores, **{**noisy, **kwargs}).metadata["selection"]
+
+    assert chosen()["chosen"] == "pruned +0.1 % x3" and chosen()["decay_rechoice"] is None  # margin 0: off
+    moved = chosen(decay_margin=0.1)
+    # the cut: 1.8 + 2 x (2.8 - 1.8) = 3.8 %; among those decaying fast enough the best, then its
+    # family's sparsest near it
+    assert moved["chosen"] == "pruned +0.1 % x2 at long windows" and moved["decay_margin"] == 0.1
+    rechoice = moved["decay_rechoice"]
+    assert rechoice["from"] == "pruned +0.1 % x3" and rechoice["to"] == moved["chosen"]
+    assert rechoice["rates"]["pruned +0.1 % x3"] == pytest.approx(-0.03)
+    assert rechoice["rates"]["pruned +0.1 % x2 at long windows"] == pytest.approx(-0.5)
+    assert chosen(decay_margin=0.02)["chosen"] == "pruned +0.1 % x3"  # decays fast enough
+    # none that decays fast enough scores within the cut: the choice stands
+    far = {**scores, "pruned +0.1 % at long windows": 3.9, "pruned +0.1 % x2 at long windows": 4.0}
+    assert chosen(far, decay_margin=0.1)["chosen"] == "pruned +0.1 % x3"
+    # clean records (no floor) and records without a small-signal rest point: no such rule
+    assert chosen(decay_margin=0.1, tolerance_floor=None)["chosen"] == "pruned +0.1 % x3"
+    at_rest = ExplicitModel(("x",), ("ug",), ["ug", "x"], np.zeros((2, 1)),
+                            {"reference_points": [dict(points[0], smallsignal=False), points[1]]})
+    assert chosen(template=at_rest, decay_margin=0.1)["chosen"] == "pruned +0.1 % x3"
+    # nor does it lose an operating point the choice has as stable: x' = 1.2 - ug - x**2 decays fast
+    # (-1.26 1/s at ug 0.8) but has no equilibrium above ug 1.2
+    folding = ExplicitModel(("x",), ("ug",), ["1", "ug", "x**2"], np.array([[1.2], [-1.0], [-1.0]]), {})
+    candidates["pruned +0.1 % x2 at long windows"] = folding
+    assert chosen(decay_margin=0.1, equilibrium_grid=(0.8, 1.0))["chosen"] == "pruned +0.1 % x2 at long windows"
+    assert chosen(decay_margin=0.1, equilibrium_grid=(0.8, 1.3))["chosen"] == "pruned +0.1 % at long windows"
+    candidates["pruned +0.1 % at long windows"] = folding
+    assert chosen(decay_margin=0.1, equilibrium_grid=(0.8, 1.3))["chosen"] == "pruned +0.1 % x3"
+    candidates["pruned +0.1 % at long windows"] = candidates["pruned +0.1 % x2 at long windows"] = model(0.5, 1)
+    cfg = IdentConfig()
+    assert cfg.selection_decay_margin == 0.1  # (the default since stop 75)
+    configured = _configured_selection(template, candidates, scores, cfg, {}, np.inf, tolerance_floor=1.8)
+    assert configured.metadata["selection"]["chosen"] == "pruned +0.1 % x2 at long windows"
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="selection_decay_margin"):
+            IdentConfig.from_mapping({"selection_decay_margin": bad})
+
+
 def test_selection_passes_over_a_prune_round_that_lost_the_fit_and_the_rounds_after_it():
     from pisml_ros.ident.estimators import _lost_rounds, _selected
 
