@@ -543,7 +543,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     chosen has a mode at a point where the small-signal records sat at rest that decays slower than
     ``decay_margin`` (1/s; 0: off) and other eligible candidates within the floor tolerance of the
     best score (and with an equilibrium at each grid voltage where the choice has a stable one) decay
-    at least that fast there, the choice is made again among those (:func:`_decay_rechoice`; the metadata's ``decay_rechoice``).
+    at least that fast there, the choice is made again among those (:func:`_decay_rechoice`; the
+    metadata's ``decay_rechoice``).
 
     What remains wrong with the choice (no better than the hold, or far worse than the noise
     explains where ``noise_floor`` is given: :func:`_selection_warnings`; a candidate from before
