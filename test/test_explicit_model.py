@@ -234,13 +234,14 @@ def test_a_single_precision_fit_ends_with_float64_normal_equations(truth, monkey
     assert passes[:-1] and all(passes[:-1]) and passes[-1] is False
     assert result.accepted > 0 and result.hessian is not None and result.hessian.dtype == np.float64
     assert _replay_error(model, result.coefficients, data) < 0.5 * _replay_error(model, start, data)
-    # float64 passes only: on these clean records the same budget gets ~1e5 times closer (measured 7e-9
-    # against 4.5e-4, the start 0.021): steps from a float32 Jacobian stall far above float64's floor
+    # float64 passes only: on these clean records the same budget gets far closer (measured 7e-9 against
+    # 4.5e-4, the start 0.021; on stop 75's machine 6.9e-9 against 3.8e-6: float32 arithmetic differs
+    # between CPUs, so the bound is 100x): steps from a float32 Jacobian stall far above float64's floor
     passes.clear()
     double = trajfit.TrajectoryFitter(model._terms, 13, data.dt, window=10, substeps=2, weights=weights).fit(
         start, model.coefficients != 0, data, lambda_jac=0.0, max_nfev=5)
     assert passes and not any(passes)
-    assert _replay_error(model, double.coefficients, data) < 1e-3 * _replay_error(model, result.coefficients, data)
+    assert _replay_error(model, double.coefficients, data) < 1e-2 * _replay_error(model, result.coefficients, data)
 
 
 def test_refinement_stops_when_told_the_fit_is_not_improving(truth):
