@@ -266,6 +266,14 @@ def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, lab
     return row, est
 
 
+def decay_record(rechoice):
+    """The selection's ``decay_rechoice`` (None where it made none) with finite rates (1/s)."""
+    if not rechoice:
+        return None
+    return {"from": rechoice["from"], "to": rechoice["to"],
+            "rates": {name: finite(rate) for name, rate in rechoice["rates"].items()}}
+
+
 def selection_record(model):
     """What the engine's selection saw (``metadata["selection"]``): the chosen candidate, and each
     candidate's free-run training error (%; None: it ran away), nonzero coefficients, rest points
@@ -296,6 +304,9 @@ def selection_record(model):
                           # since stop 43: sparser models passed over for turning the best's "stable"
                           # into "unstable" at a grid voltage (estimators._chosen_among)
                           "turned_unstable": {k: list(v) for k, v in (selection.get("turned_unstable") or {}).items()},
+                          # since stop 75: a choice whose slow mode barely decayed at the small-signal
+                          # rest points, made again (estimators._decay_rechoice): from, to, their rates
+                          "decay_rechoice": decay_record(selection.get("decay_rechoice")),
                           "training_error_pct": {k: finite(v) for k, v in selection["training_error_pct"].items()},
                           "nonzero": {k: int(v) for k, v in selection["nonzero"].items()},
                           "inconsistent_rest_points": {k: int(v) for k, v in
