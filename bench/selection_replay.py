@@ -1,0 +1,96 @@
+"""Replay the engine's selection on saved candidate tables, under other selection settings.
+
+``bench/candidates.py --out FILE`` keeps every candidate of one fit as an explicit model, its test
+errors (IOD / OOD, spurious modes) and the fit's selection record (hold error, noise floor). This
+script runs the engine's own selection (:func:`pisml_ros.ident.estimators._configured_selection`)
+again on those candidates with the settings given by ``--set`` and prints, per table, the model
+the fit chose, the one the replay chooses and their test errors, then how many replayed choices
+are within both 40 dB targets (IOD ≤ 0.5 %, OOD ≤ 1.0 %, no spurious mode).
+
+A replay sees only the final candidates: where a setting would have changed what the fit ran
+(a rescue, a second start), only a fit measures it. Stop 75 (``selection_decay_margin``)::
+
+    for s in $(seq 0 23); do .venv/bin/python bench/candidates.py --seed $s --noise 40 --out c-$s.json; done
+    .venv/bin/python bench/selection_replay.py c-*.json --set selection_decay_margin=0
+    .venv/bin/python bench/selection_replay.py c-*.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+from pathlib import Path
+
+import numpy as np
+
+BENCH = Path(__file__).resolve().parent
+sys.path[:0] = [str(BENCH), str(BENCH.parent)]
+
+
+def replayed_choice(table: dict, config) -> str:
+    """The candidate the selection configured by ``config`` (IdentConfig) takes among ``table``'s
+    (a ``bench/candidates.py --out`` file's contents)."""
+    from pisml_ros.ident.estimators import _configured_selection
+    from pisml_ros.model import ExplicitModel
+
+    models = {name: ExplicitModel.from_dict(model, source=name) for name, model in table["models"].items()}
+    recorded = table["selection"]
+    scores = {name: np.inf if recorded["training_error_pct"].get(name) is None
+              else recorded["training_error_pct"][name] for name in models}
+    first = next(iter(models.values()))
+    # candidates.py gave every candidate the fit's rest points; the roles come from the config
+    template = ExplicitModel(first.state_names, first.input_names, first.terms, first.coefficients,
+                             {"reference_points": first.metadata.get("reference_points") or [],
+                              "config": config.to_dict()})
+    floor = recorded.get("noise_floor_pct")
+    noisy = recorded.get("tolerance_floor_pct") is not None
+    selection = _configured_selection(template, models, scores, config, {}, recorded["hold_error_pct"],
+                                      noise_floor=floor, tolerance_floor=floor if noisy else None)
+    return selection.metadata["selection"]["chosen"]
+
+
+def percent(value) -> str:
+    """An error (%) as the tables print it; a run that could not be scored (None) as a dash."""
+    return "—" if value is None else f"{value:.3f}"
+
+
+def within(row: dict) -> bool:
+    """Both 40 dB accuracy targets met and no spurious unstable mode."""
+    return (row["iod"] is not None and row["ood"] is not None and row["iod"] <= 0.5 and row["ood"] <= 1.0
+            and not row["spurious"])
+
+
+def main(argv=None) -> int:
+    from bench import add_settings_option, settings_or_exit
+
+    from pisml_ros.ident import IdentConfig
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("tables", nargs="+", help="bench/candidates.py --out files")
+    add_settings_option(parser)
+    args = parser.parse_args(argv)
+    config = IdentConfig.load(None, settings_or_exit(args.set, parser))
+    rows = []
+    for path in args.tables:
+        try:
+            table = json.loads(Path(path).read_text())
+            fitted, chosen = table["chosen"], replayed_choice(table, config)
+        except (OSError, ValueError, KeyError) as err:
+            parser.error(f"{path}: not a bench/candidates.py --out table ({type(err).__name__}: {err})")
+        row = table["rows"][chosen]
+        rows.append(row)
+        before = table["rows"][fitted]
+        mark = "same" if chosen == fitted else f"was {fitted!r} ({percent(before['iod'])} / {percent(before['ood'])} %)"
+        print(f"{table['scenario']} {table['plant']} seed {table['seed']} {table['noise']}: {chosen!r} "
+              f"{percent(row['iod'])} / {percent(row['ood'])} %, {row['coefficients']} coefficients, "
+              f"{'within' if within(row) else 'OUTSIDE'}; {mark}")
+    median = {key: statistics.median(np.inf if r[key] is None else r[key] for r in rows) for key in ("iod", "ood")}
+    print(f"{sum(map(within, rows))} of {len(rows)} within both 40 dB targets with no spurious mode; "
+          f"median IOD {median['iod']:.3f} %, OOD {median['ood']:.3f} %; at most 84 coefficients: "
+          f"{sum(r['coefficients'] <= 84 for r in rows)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
