@@ -584,13 +584,14 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                    grid_inputs=stability_grid, passed=passed, **above_floor)
     rechoice = None
     if models and decay_margin > 0 and tolerance_floor is not None and np.isfinite(floor_tolerance):
-        rechoice = _decay_rechoice(chosen, eligible, candidates, scores, points, verdicts, decay_margin,
-                                   tolerance_floor, floor_tolerance, grid_inputs)
-        if rechoice is not None:
-            chosen = _chosen_among(rechoice["pool"], candidates, scores, tolerance, points, verdicts,
-                                   competing=eligible, lost=lost, grid_inputs=stability_grid, passed=passed,
-                                   **above_floor)
-            rechoice = {"from": rechoice["from"], "rates": rechoice["rates"], "to": chosen}
+        rates = _decay_rechoice(chosen, eligible, candidates, scores, points, verdicts, decay_margin,
+                                tolerance_floor, floor_tolerance, grid_inputs)
+        if rates:
+            pool = [name for name in rates if name != chosen]
+            rechoice = {"from": chosen, "rates": rates}
+            chosen = _chosen_among(pool, candidates, scores, tolerance, points, verdicts, competing=eligible,
+                                   lost=lost, grid_inputs=stability_grid, passed=passed, **above_floor)
+            rechoice["to"] = chosen
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
     # what P0 in its terms' (Pf - P0) is; how far the data pin its coefficients
@@ -613,9 +614,9 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                    "hold_error_pct": hold, "noise_floor_pct": noise_floor,
                                    "equilibrium_grid": list(equilibrium_grid), "missing_equilibria": missing,
                                    "grid_stability": bool(grid_stability),
+                                   "decay_margin": decay_margin, "decay_rechoice": rechoice,
                                    # sparser models passed over: the grid voltages where each turned
                                    # the best's "stable" into "unstable"
-                                   "decay_margin": decay_margin, "decay_rechoice": rechoice,
                                    "turned_unstable": {name: [float(equilibrium_grid[k]) for k in flipped]
                                                        for name, flipped in passed.items()},
                                    "warnings": _selection_warnings(chosen, scores, hold, misfits, points,
@@ -623,6 +624,12 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                                                    noise_floor, noise_ratio, noise_margin,
                                                                    refinement_expected)}
     return model
+
+
+def _floor_cut(floor: float, reference: float, floor_tolerance: float) -> float:
+    """The highest score near ``reference`` on noisy records: its part above the noise ``floor``
+    grown by ``floor_tolerance`` (``IdentConfig.selection_floor_tolerance``)."""
+    return floor + max(reference - floor, 0.0) * (1 + floor_tolerance)
 
 
 def _smallsignal_rate(name: str, candidates: dict, points: list, cache: dict) -> float | None:
@@ -640,8 +647,8 @@ def _decay_rechoice(chosen: str, eligible: list, candidates: dict, scores: dict,
     (1/s; :func:`_smallsignal_rate` above ``-margin``), the ``eligible`` candidates that decay at
     least that fast there, score within ``floor_tolerance`` of the best eligible score above the noise
     ``floor`` (the cut of :func:`_chosen_among`) and have an equilibrium at each of ``grid_inputs``
-    where ``chosen`` has a stable one: ``{"from": chosen, "rates": name -> rate, "pool": names}``;
-    None where ``chosen`` decays fast enough or no other candidate qualifies.
+    where ``chosen`` has a stable one. Returns their rates and ``chosen``'s (name -> 1/s, ``chosen``
+    first), or None where ``chosen`` decays fast enough or no other candidate qualifies.
 
     Why (stop 75, ``bench/candidates.py`` on the 24 protocol recordings at 40 dB, replayed): the
     records cannot tell a slow mode at -0.03 1/s from one at -0.5 (the 0.1 s small-signal records
@@ -653,8 +660,7 @@ def _decay_rechoice(chosen: str, eligible: list, candidates: dict, scores: dict,
     rate = _smallsignal_rate(chosen, candidates, points, cache)
     if rate is None or rate <= -margin:
         return None
-    best = min(scores[name] for name in eligible)
-    cut = floor + max(best - floor, 0.0) * (1 + floor_tolerance)
+    cut = _floor_cut(floor, min(scores[name] for name in eligible), floor_tolerance)
     rates = {name: _smallsignal_rate(name, candidates, points, cache) for name in eligible if scores[name] <= cut}
     pool = [name for name, value in rates.items() if value is not None and value <= -margin]
     if grid_inputs:
@@ -666,7 +672,7 @@ def _decay_rechoice(chosen: str, eligible: list, candidates: dict, scores: dict,
                 if not any(_without_equilibrium(name, candidates, points, grid_inputs, cache)[k] for k in stable)]
     if not pool:
         return None
-    return {"from": chosen, "rates": {chosen: rate, **{name: rates[name] for name in pool}}, "pool": pool}
+    return {chosen: rate, **{name: rates[name] for name in pool}}
 
 
 def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: float, points: list,
@@ -701,7 +707,7 @@ def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: flo
         competing = eligible if competing is None else competing
         reference = max(scores[best], scores[refined_name]) if refined_name in competing else scores[best]
         if floor is not None and np.isfinite(floor_tolerance):
-            cut = floor + max(reference - floor, 0.0) * (1 + floor_tolerance)
+            cut = _floor_cut(floor, reference, floor_tolerance)
         else:
             cut = reference * (1 + tolerance)
         near = [name for name in eligible if name.startswith("pruned") and _refinement_family(name) == family
