@@ -56,13 +56,16 @@ def percent(value) -> str:
 
 
 def within(row: dict) -> bool:
-    """Both 40 dB accuracy targets met and no spurious unstable mode."""
-    return (row["iod"] is not None and row["ood"] is not None and row["iod"] <= 0.5 and row["ood"] <= 1.0
-            and not row["spurious"])
+    """Both 40 dB accuracy targets met and no spurious unstable mode (as ``bench/setting_sweep.py`` judges)."""
+    from setting_sweep import meets
+
+    met = meets(row)
+    return met["accuracy"] and met["no_spurious"]
 
 
 def main(argv=None) -> int:
     from bench import add_settings_option, settings_or_exit
+    from setting_sweep import meets
 
     from pisml_ros.ident import IdentConfig
 
@@ -88,7 +91,7 @@ def main(argv=None) -> int:
     median = {key: statistics.median(np.inf if r[key] is None else r[key] for r in rows) for key in ("iod", "ood")}
     print(f"{sum(map(within, rows))} of {len(rows)} within both 40 dB targets with no spurious mode; "
           f"median IOD {median['iod']:.3f} %, OOD {median['ood']:.3f} %; at most 84 coefficients: "
-          f"{sum(r['coefficients'] <= 84 for r in rows)}")
+          f"{sum(meets(r)['compression'] for r in rows)}")
     return 0
 
 
