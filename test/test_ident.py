@@ -1486,7 +1486,9 @@ def test_selection_passes_over_a_model_whose_slow_mode_barely_decays_at_the_smal
         return _selected(template, candidates, scores, **{**noisy, **kwargs}).metadata["selection"]
 
     assert chosen()["chosen"] == "pruned +0.1 % x3" and chosen()["decay_rechoice"] is None  # margin 0: off
+    assert chosen()["smallsignal_rate"] is None and not chosen()["warnings"]
     moved = chosen(decay_margin=0.1)
+    assert moved["smallsignal_rate"] == pytest.approx(-0.5) and not moved["warnings"]
     # the cut: 1.8 + 2 x (2.8 - 1.8) = 3.8 %; among those decaying fast enough the best, then its
     # family's sparsest near it
     assert moved["chosen"] == "pruned +0.1 % x2 at long windows" and moved["decay_margin"] == 0.1
@@ -1497,7 +1499,10 @@ def test_selection_passes_over_a_model_whose_slow_mode_barely_decays_at_the_smal
     assert chosen(decay_margin=0.02)["chosen"] == "pruned +0.1 % x3"  # decays fast enough
     # none that decays fast enough scores within the cut: the choice stands
     far = {**scores, "pruned +0.1 % at long windows": 3.9, "pruned +0.1 % x2 at long windows": 4.0}
-    assert chosen(far, decay_margin=0.1)["chosen"] == "pruned +0.1 % x3"
+    stands = chosen(far, decay_margin=0.1)
+    assert stands["chosen"] == "pruned +0.1 % x3" and stands["smallsignal_rate"] == pytest.approx(-0.03)
+    # ... and the model says so (one warning: the slow mode, nothing else is wrong with it)
+    assert len(stands["warnings"]) == 1 and "decays at only 0.03 1/s" in stands["warnings"][0]
     # clean records (no floor) and records without a small-signal rest point: no such rule
     assert chosen(decay_margin=0.1, tolerance_floor=None)["chosen"] == "pruned +0.1 % x3"
     at_rest = ExplicitModel(("x",), ("ug",), ["ug", "x"], np.zeros((2, 1)),

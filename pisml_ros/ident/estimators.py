@@ -400,13 +400,16 @@ NO_SMALLSIGNAL_WARNING = (
 def _selection_warnings(chosen: str, scores: dict, hold: float, misfits: dict, points: list,
                         unstable_rate: float, equilibrium_grid, missing_at: list,
                         noise_floor: float | None = None, noise_ratio: float = np.inf,
-                        noise_margin: float = 0.0, refinement_expected: bool = False) -> list:
+                        noise_margin: float = 0.0, refinement_expected: bool = False,
+                        smallsignal_rate: float | None = None, decay_margin: float = 0.0) -> list:
     """What a user of the chosen model should know before trusting it, in words: it reproduces the
     records no better than holding their first states; or far worse than their noise explains (its
     free-run error above ``noise_ratio`` × ``noise_floor`` + ``noise_margin`` percentage points,
     :func:`~pisml_ros.ident.noise.noise_floor_error`); it is a candidate from before the trajectory
     refinement where one was expected to win (``refinement_expected``: noisy records, refinement
-    on); it contradicts operating points where the records sat at rest; it has no equilibrium (so
+    on); it contradicts operating points where the records sat at rest; its slowest mode at the
+    small-signal rest points (``smallsignal_rate``, 1/s) decays slower than ``decay_margin`` with no
+    candidate near its score to take its place (:func:`_decay_rechoice`); it has no equilibrium (so
     no stability verdict) at some grid voltages. Empty for a model with none of these.
 
     Before-refinement candidates chosen on noisy records (stop 48, every benchmark's results files):
@@ -434,6 +437,14 @@ def _selection_warnings(chosen: str, scores: dict, hold: float, misfits: dict, p
                         f"the model has no equilibrium or one with a mode growing faster than {unstable_rate:g} "
                         f"1/s (where the small-signal records sat: one that does not decay): its stability "
                         f"verdicts there contradict the data")
+    if smallsignal_rate is not None and smallsignal_rate > -decay_margin and not misfits.get(chosen):
+        # a mode that does not decay there at all is an inconsistent rest point, said above
+        warnings.append(f"the model's slowest mode where the small-signal records sat at rest decays at only "
+                        f"{-smallsignal_rate:.3g} 1/s (selection_decay_margin {decay_margin:g} 1/s) and no "
+                        f"candidate near its score decays faster there: 0.1 s of small-signal record cannot tell "
+                        f"such a mode from a well-damped one, and on the benchmark's 40 dB recordings the chosen "
+                        f"models that decayed this slowly were the worse ones (-0.03 to -0.04 1/s where the plant "
+                        f"is at -0.73); its damping and the stability margins near there are not decided by the data")
     lacking = [float(value) for value, missing in zip(equilibrium_grid, missing_at) if missing]
     if lacking:
         warnings.append(f"no equilibrium at grid voltage(s) {', '.join(f'{v:g}' for v in lacking)}: no "
@@ -583,6 +594,7 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                    tolerance, points, verdicts, competing=eligible, lost=lost,
                                    grid_inputs=stability_grid, passed=passed, **above_floor)
     rechoice = None
+    slow_rate = None
     if models and decay_margin > 0 and tolerance_floor is not None and np.isfinite(floor_tolerance):
         rates = _decay_rechoice(chosen, eligible, candidates, scores, points, verdicts, decay_margin,
                                 tolerance_floor, floor_tolerance, grid_inputs)
@@ -592,6 +604,7 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
             chosen = _chosen_among(pool, candidates, scores, tolerance, points, verdicts, competing=eligible,
                                    lost=lost, grid_inputs=stability_grid, passed=passed, **above_floor)
             rechoice["to"] = chosen
+        slow_rate = _smallsignal_rate(chosen, candidates, points, verdicts)
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
     # what P0 in its terms' (Pf - P0) is; how far the data pin its coefficients
@@ -615,6 +628,9 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                    "equilibrium_grid": list(equilibrium_grid), "missing_equilibria": missing,
                                    "grid_stability": bool(grid_stability),
                                    "decay_margin": decay_margin, "decay_rechoice": rechoice,
+                                   # the choice's slowest mode at the small-signal rest points (1/s;
+                                   # None where the rule above does not apply)
+                                   "smallsignal_rate": slow_rate,
                                    # sparser models passed over: the grid voltages where each turned
                                    # the best's "stable" into "unstable"
                                    "turned_unstable": {name: [float(equilibrium_grid[k]) for k in flipped]
@@ -622,7 +638,7 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                    "warnings": _selection_warnings(chosen, scores, hold, misfits, points,
                                                                    unstable_rate, equilibrium_grid, missing_at,
                                                                    noise_floor, noise_ratio, noise_margin,
-                                                                   refinement_expected)}
+                                                                   refinement_expected, slow_rate, decay_margin)}
     return model
 
 
