@@ -298,14 +298,14 @@ def selection_record(model):
                                "seconds": finite(limiter.get("seconds") or limiter.get("fit_seconds"))}
     return {"selection": {**searches, "chosen": selection["chosen"], "tolerance": finite(selection.get("tolerance")),
                           "hold_error_pct": finite(selection.get("hold_error_pct")),
-                          # since stop 42: the prune rounds that lost the fit (estimators._lost_rounds)
+                          # since stop 42: the prune rounds that lost the fit (selection._lost_rounds)
                           "round_rise": finite(selection.get("round_rise")),
                           "lost_rounds": list(selection.get("lost_rounds") or []),
                           # since stop 43: sparser models passed over for turning the best's "stable"
-                          # into "unstable" at a grid voltage (estimators._chosen_among)
+                          # into "unstable" at a grid voltage (selection._chosen_among)
                           "turned_unstable": {k: list(v) for k, v in (selection.get("turned_unstable") or {}).items()},
                           # since stop 75: a choice whose slow mode barely decayed at the small-signal
-                          # rest points, made again (estimators._decay_rechoice): from, to, their rates
+                          # rest points, made again (selection._decay_rechoice): from, to, their rates
                           "decay_rechoice": decay_record(selection.get("decay_rechoice")),
                           "training_error_pct": {k: finite(v) for k, v in selection["training_error_pct"].items()},
                           "nonzero": {k: int(v) for k, v in selection["nonzero"].items()},
@@ -313,7 +313,7 @@ def selection_record(model):
                                                        selection["inconsistent_rest_points"].items()},
                           "missing_equilibria": {k: int(v) for k, v in
                                                  (selection.get("missing_equilibria") or {}).items()},
-                          # since stop 45: the cautions in words (estimators._selection_warnings)
+                          # since stop 45: the cautions in words (selection._selection_warnings)
                           "noise_floor_pct": finite(selection.get("noise_floor_pct")),
                           "warnings": list(selection.get("warnings") or [])}}
 

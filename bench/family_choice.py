@@ -29,9 +29,9 @@ from setting_sweep import format_summary, load  # noqa: E402
 
 def best_eligible(row: dict) -> tuple:
     """(fewest inconsistent rest points among the eligible candidates, their best score) of one row's
-    selection record, by the engine's own rule (:func:`pisml_ros.ident.estimators.eligible_candidates`),
+    selection record, by the engine's own rule (:func:`pisml_ros.ident.selection.eligible_candidates`),
     and the chosen model's score over the noise floor."""
-    from pisml_ros.ident.estimators import eligible_candidates
+    from pisml_ros.ident.selection import eligible_candidates
 
     selection = row.get("selection")
     if not selection:

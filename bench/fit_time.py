@@ -28,7 +28,7 @@ def family_stages(candidates: dict) -> dict:
     """``{family: [stage record, ...]}`` from the candidates' metadata: a family is a refinement's
     candidates (``"refined"`` and its prune rounds, with the same name suffix); its stages are the
     growing-window stages, then each round's polish, in the order they ran."""
-    from pisml_ros.ident.estimators import _refinement_family
+    from pisml_ros.ident.selection import _refinement_family
 
     families: dict = {}
     for name, model in candidates.items():

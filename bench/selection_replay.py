@@ -2,7 +2,7 @@
 
 ``bench/candidates.py --out FILE`` keeps every candidate of one fit as an explicit model, its test
 errors (IOD / OOD, spurious modes) and the fit's selection record (hold error, noise floor). This
-script runs the engine's own selection (:func:`pisml_ros.ident.estimators._configured_selection`)
+script runs the engine's own selection (:func:`pisml_ros.ident.selection._configured_selection`)
 again on those candidates with the settings given by ``--set`` and prints, per table, the model
 the fit chose, the one the replay chooses and their test errors, then how many replayed choices
 are within both 40 dB targets (IOD ≤ 0.5 %, OOD ≤ 1.0 %, no spurious mode).
@@ -31,7 +31,7 @@ sys.path[:0] = [str(BENCH), str(BENCH.parent)]
 def replayed_choice(table: dict, config) -> str:
     """The candidate the selection configured by ``config`` (IdentConfig) takes among ``table``'s
     (a ``bench/candidates.py --out`` file's contents)."""
-    from pisml_ros.ident.estimators import _configured_selection
+    from pisml_ros.ident.selection import _configured_selection
     from pisml_ros.model import ExplicitModel
 
     models = {name: ExplicitModel.from_dict(model, source=name) for name, model in table["models"].items()}

@@ -607,7 +607,7 @@ def test_records_of_different_lengths_run_in_one_pass_as_each_would_alone():
 
 def test_the_alternatives_rebuild_from_the_json_and_say_whether_the_verdict_is_open(tmp_path, truth):
     from pisml_ros.analysis.operating_point import alternatives_note, operating_point_report
-    from pisml_ros.ident.estimators import alternative_entry
+    from pisml_ros.ident.selection import alternative_entry
 
     model, _ = truth
     # a rival with a leaky voltage integrator turned into a growing one, and a copy of the model

@@ -11,7 +11,8 @@ from pisml_ros.analysis.metrics import protocol_errors, relative_error, spectrum
 from pisml_ros.data import Dataset, Trajectory, read_dataset, write_dataset
 from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
 from pisml_ros.ident.backbone import fit_backbone, noise_moments, sparse_regression
-from pisml_ros.ident.estimators import MAX_ALTERNATIVES, NO_SMALLSIGNAL_WARNING, backbone_span
+from pisml_ros.ident.estimators import NO_SMALLSIGNAL_WARNING, backbone_span
+from pisml_ros.ident.selection import MAX_ALTERNATIVES
 from pisml_ros.ident.library import coupling_separation, physics_library
 from pisml_ros.ident.trajfit import backward_elimination
 from pisml_ros.model import ExplicitModel
@@ -421,7 +422,7 @@ def test_clean_records_no_candidate_reproduces_are_refined_in_growing_windows_fr
     # the selection records the same floor, for its warning on a model far worse than the noise
     assert noisy.explicit_model_.metadata["selection"]["noise_floor_pct"] == pytest.approx(rescue["noise_floor_pct"])
     # a family of its own: its pruned models are judged against its own refined model
-    from pisml_ros.ident.estimators import _refinement_family
+    from pisml_ros.ident.selection import _refinement_family
 
     assert {_refinement_family(name) for name in rescue["added"]} == {" with growing prior",
                                                                       " at long windows with growing prior"}
@@ -983,7 +984,7 @@ def test_noisy_data_refinement_grows_its_windows_and_prunes_a_spurious_term():
     np.testing.assert_allclose(rounds["pruned +1 %"].coefficients[:3], truth, rtol=0.05, atol=0.02 * np.abs(truth).max())
     # the long-window branch: the refined model re-fitted in the polish's longest windows, then pruned
     # and polished there, a family of its own beside the first (which it leaves as it was)
-    from pisml_ros.ident.estimators import LONG_BRANCH_SUFFIX, _refinement_family
+    from pisml_ros.ident.selection import LONG_BRANCH_SUFFIX, _refinement_family
 
     branched = refine_explicit(spurious, train, small, IdentConfig.from_mapping(
         {**cfg.to_dict(), "refine_prune_rounds": 3, "refine_long_branch": True, "refine_long_branch_evaluations": 3}))
@@ -1126,7 +1127,7 @@ def test_least_squares_elimination_ranks_removals_where_the_normal_equations_can
 
 def test_selection_excuses_a_fold_just_before_an_edge_rest_point_that_the_model_passes_slowly():
     from pisml_ros.analysis.operating_point import rest_drift
-    from pisml_ros.ident.estimators import _selected
+    from pisml_ros.ident.selection import _selected
 
     # x' = 1 - x; y' = a - u - y**2 has a stable equilibrium y = sqrt(a - u) for u < a and none
     # beyond: at u = 1 (a record at rest at y = 0.01, at the edge of the data) a = 0.9999 passes
@@ -1160,7 +1161,7 @@ def test_selection_excuses_a_fold_just_before_an_edge_rest_point_that_the_model_
     # a hole between two points with an equilibrium is no fold at the branch's edge: never excused.
     # y' = 4 (u - 0.5)**2 - 1e-4 - y**2 has an equilibrium at u = 0 and u = 1, none at u = 0.5,
     # where it passes y = 0.01 as slowly as the fold above
-    from pisml_ros.ident.estimators import _inconsistent_points
+    from pisml_ros.ident.selection import _inconsistent_points
     hole = ExplicitModel(("x", "y"), ("u",), terms + ["u**2"],
                          np.column_stack([[1.0, -1, 0, 0, 0, 0], [0.9999, 0, -4, -1, 0, 4]]), {})
     around = [{"inputs": [0.0], "state": [1.0, 1.0]}, {"inputs": [0.5], "state": [1.0, 0.01]},
@@ -1184,7 +1185,7 @@ def test_selection_excuses_a_fold_just_before_an_edge_rest_point_that_the_model_
 
 
 def test_a_mode_that_does_not_decay_where_the_small_signal_records_sat_is_inconsistent():
-    from pisml_ros.ident.estimators import _inconsistent_points
+    from pisml_ros.ident.selection import _inconsistent_points
 
     # x' = 1 - x; y' = r (y - 1): the equilibrium (1, 1) has the modes -1 and r at every input;
     # y' = -(y - 1)**3 has an isolated equilibrium there with the mode 0
@@ -1205,7 +1206,7 @@ def test_a_mode_that_does_not_decay_where_the_small_signal_records_sat_is_incons
     # grows at +0.25 1/s at ug 1.2); where the small-signal records sat, perturbations that return
     # to their equilibrium, it does not (stop 39: a 40 dB fit unstable at +0.15-0.25 1/s at every
     # rest point, spuriously unstable over ug 0.2-1.1)
-    # a mode of modulus below estimators.ZERO_MODE_MODULUS (a decay at 1e-3 1/s, or none: the cubic)
+    # a mode of modulus below selection.ZERO_MODE_MODULUS (a decay at 1e-3 1/s, or none: the cubic)
     # counts as no equilibrium at every point: the smallest offset in f moves such an equilibrium
     # far (stop 61: Q 2.6e3 p.u. off the plant's), and at none of them is it excused as a fold
     assert count == {"slow growth": (0, 1), "decay": (0, 0), "fast growth": (2, 3), "zero mode": (2, 3),
@@ -1222,7 +1223,7 @@ def test_an_equilibrium_away_from_the_rest_state_is_inconsistent_with_a_rest_off
     """``selection_rest_offset``: where a record sat still, the model's equilibrium must lie within
     that (relative) of the rest state; inf: off."""
     from pisml_ros.ident import IdentConfig
-    from pisml_ros.ident.estimators import _inconsistent_points, _rest_offsets
+    from pisml_ros.ident.selection import _inconsistent_points, _rest_offsets
 
     # x' = a - x, y' = u - y: the equilibrium (a, u), stable, with the rest states at (1, u)
     def model(a):
@@ -1243,7 +1244,7 @@ def test_an_equilibrium_away_from_the_rest_state_is_inconsistent_with_a_rest_off
 
 
 def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
-    from pisml_ros.ident.estimators import _grid_inputs, _selected
+    from pisml_ros.ident.selection import _grid_inputs, _selected
 
     # y' = ug - a - y**2 has the stable equilibrium y = sqrt(ug - a) for ug > a and none below: with
     # a = 0.7 the branch folds at ug 0.7, below the records' rest points (ug 0.8 and 1.0), as
@@ -1298,7 +1299,7 @@ def test_selection_prefers_a_candidate_with_equilibria_over_the_analysis_grid():
 
 
 def test_the_grid_stability_option_passes_over_a_sparser_model_unstable_where_the_best_is_stable():
-    from pisml_ros.ident.estimators import _selected
+    from pisml_ros.ident.selection import _selected
 
     # x' = 1 - x; y' = k·y + (ug-dependent part): the equilibrium y = 0 at every grid voltage.
     # "flips": y' = (0.5 - ug)·y, stable at the rest points (ug 0.8, 1.0) but unstable below ug 0.5
@@ -1333,7 +1334,7 @@ def test_the_grid_stability_option_passes_over_a_sparser_model_unstable_where_th
 
 def test_selection_records_in_words_what_is_wrong_with_the_chosen_model():
     from pisml_ros.ident import selection_warnings
-    from pisml_ros.ident.estimators import _selected
+    from pisml_ros.ident.selection import _selected
 
     terms = ["1", "x", "ug", "y**2"]
 
@@ -1431,7 +1432,7 @@ def test_selection_tolerance_counts_from_the_noise_floor_on_noisy_records():
     its score above the records' noise floor is within (1 + τ) of the refined model's, not where
     its whole score is within ``selection_tolerance``; a tolerance given outright (the preliminary
     model's 0) and clean records (no floor) keep the whole-score rule."""
-    from pisml_ros.ident.estimators import _configured_selection, _selected
+    from pisml_ros.ident.selection import _configured_selection, _selected
 
     def model(nonzero):
         coef = np.zeros((6, 1))
@@ -1466,7 +1467,7 @@ def test_selection_passes_over_a_model_whose_slow_mode_barely_decays_at_the_smal
     records' rest point decays slower than the margin gives way to the candidates within the floor
     tolerance of the best score that decay at least that fast there (stop 75, protocol recording 1:
     -0.028 1/s at ug 0.8 where the plant is at -0.73)."""
-    from pisml_ros.ident.estimators import _configured_selection, _selected
+    from pisml_ros.ident.selection import _configured_selection, _selected
 
     def model(rate, extra=0):  # x' = rate (ug - x): the equilibrium x = ug, its mode at -rate
         coef = np.zeros((2 + extra, 1))
@@ -1527,7 +1528,7 @@ def test_selection_passes_over_a_model_whose_slow_mode_barely_decays_at_the_smal
 
 
 def test_selection_passes_over_a_prune_round_that_lost_the_fit_and_the_rounds_after_it():
-    from pisml_ros.ident.estimators import _lost_rounds, _selected
+    from pisml_ros.ident.selection import _lost_rounds, _selected
 
     def model(nonzero):
         coef = np.zeros((6, 1))
@@ -1569,7 +1570,7 @@ def test_selection_passes_over_a_prune_round_that_lost_the_fit_and_the_rounds_af
 
 
 def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
-    from pisml_ros.ident.estimators import _selected
+    from pisml_ros.ident.selection import _selected
 
     def model(nonzero):
         coef = np.zeros((6, 1))
@@ -1623,7 +1624,7 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
         "chosen"] == "pruned +1 %"
     # where a re-choice runs over some of the competing candidates only, a refined model that
     # competes stays the yardstick even outside them
-    from pisml_ros.ident.estimators import _chosen_among
+    from pisml_ros.ident.selection import _chosen_among
 
     consistent = dict(runaway, refined=two["refined"])
     subset = ["pruned +0.1 %", "pruned +1 %"]
@@ -1683,7 +1684,7 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     assert _selected(candidates["refined"], family, family_scores, tolerance=0.5).metadata["selection"]["chosen"] \
         == "pruned +0.3 % from noise-compensated backbone"
     # a later prune round ("… xR") belongs to the family of its start
-    from pisml_ros.ident.estimators import _refinement_family
+    from pisml_ros.ident.selection import _refinement_family
 
     assert _refinement_family("pruned +0.3 % x2") == "" and \
         _refinement_family("pruned +0.3 % x3 from noise-compensated backbone") == " from noise-compensated backbone"
@@ -1700,7 +1701,7 @@ def test_second_refinement_start_runs_only_where_the_first_family_fails():
     """refine_starts=fallback: the noise-compensated backbone's refinement is needed where the
     selection over the first start's family takes another candidate, or one of the family that is
     inconsistent with a point where the records sat at rest."""
-    from pisml_ros.ident.estimators import _refinement_suffices
+    from pisml_ros.ident.selection import _refinement_suffices
 
     template = ExplicitModel(("x",), ("u",), ["1", "x", "u"], np.zeros((3, 1)),
                              {"reference_points": [{"inputs": [0.0], "state": [1.0]}]})
@@ -1829,7 +1830,7 @@ def _fit_at_40_db(cfg, train, small):
 def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_is_lost(train, small, monkeypatch):
     # every restricted refinement breaks down here (as both did on vendor-c seed 0 at 40 dB): the
     # selection would take a start, so the starts are refined again with the filter rows free
-    from pisml_ros.ident import estimators
+    from pisml_ros.ident import estimators, selection
     from pisml_ros.ident.library import filter_row_mask
 
     real = estimators.refine_explicit
@@ -1847,7 +1848,7 @@ def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_
     meta = est.explicit_model_.metadata
     record = meta["refinement_unrestricted"]
     assert restricted_starts and record["run"] and record["refinement_lost"]
-    assert estimators._refinement_family(record["selected_before"]) is None
+    assert selection._refinement_family(record["selected_before"]) is None
     assert not any(name.startswith(("refined", "pruned")) for name in meta["selection"]["training_error_pct"]
                    if not name.endswith(" unrestricted"))
     assert record["ratio"] == pytest.approx(record["error_pct"] / meta["selection"]["noise_floor_pct"])
@@ -1858,8 +1859,8 @@ def test_physics_filter_fit_falls_back_to_free_filter_rows_where_its_refinement_
     assert starts[0] in ("distilled", *[n for n in est.candidates_ if n.startswith("re-fit")])
     # (each start with its long-window branch's family, IdentConfig.refine_long_branch)
     suffixes = {" unrestricted", *[f" from {s} unrestricted" for s in starts[1:]]}
-    assert {estimators._refinement_family(name) for name in record["added"]} == \
-        suffixes | {estimators.LONG_BRANCH_SUFFIX + suffix for suffix in suffixes}
+    assert {selection._refinement_family(name) for name in record["added"]} == \
+        suffixes | {selection.LONG_BRANCH_SUFFIX + suffix for suffix in suffixes}
     assert set(record["added"]) <= set(meta["selection"]["training_error_pct"])
     assert est.metrics_["refinement_unrestricted"] == 1.0
     # the families' filter rows are free: the refined model keeps terms the physics mask rejects
@@ -1901,15 +1902,15 @@ def test_noisy_fit_whose_choice_is_inconsistent_with_the_rest_points_runs_the_re
     # inconsistent with all 9 rest points, the chosen one scored 2.2x the noise floor (below the
     # rescue's ratio), and no second try ran. Here every candidate outside the rescue's family is
     # inconsistent with the rest points, at a ratio the rescue never reaches by itself
-    from pisml_ros.ident import estimators
+    from pisml_ros.ident import selection
 
-    real = estimators._inconsistent_points
+    real = selection._inconsistent_points
 
     def inconsistent_but_the_rescue(name, candidates, points, *args, **kwargs):
         count = real(name, candidates, points, *args, **kwargs)
         return count if name.endswith(" with growing prior") else max(count, 1)
 
-    monkeypatch.setattr(estimators, "_inconsistent_points", inconsistent_but_the_rescue)
+    monkeypatch.setattr(selection, "_inconsistent_points", inconsistent_but_the_rescue)
     cfg = IdentConfig.from_mapping({**FAST, "refine_rescue_ratio": 1e9, "refine_retry_ratio": 1e9,
                                     "filter_terms": "physics"})
     est = _fit_at_40_db(cfg, train, small)
@@ -1924,8 +1925,8 @@ def test_noisy_fit_whose_choice_is_inconsistent_with_the_rest_points_runs_the_re
     assert fallback["run"] == (fallback["inconsistent_rest_points"] > 0 or fallback["refinement_lost"])
     # consistent refined choices below the ratio: neither runs (the candidates from before the
     # refinement inconsistent, as those run the rescue whatever their score, tested below)
-    monkeypatch.setattr(estimators, "_inconsistent_points",
-                        lambda name, *args, **kwargs: int(estimators._refinement_family(name) is None))
+    monkeypatch.setattr(selection, "_inconsistent_points",
+                        lambda name, *args, **kwargs: int(selection._refinement_family(name) is None))
     kept = _fit_at_40_db(cfg, train, small)
     meta = kept.explicit_model_.metadata
     assert not meta["refinement_rescue"]["run"] and meta["refinement_rescue"]["inconsistent_rest_points"] == 0
@@ -1939,27 +1940,27 @@ def test_noisy_fit_whose_choice_is_from_before_the_refinement_runs_the_rescue(tr
     # consistent and at 1.39x the noise floor (below the rescue's ratio): nothing tried again.
     # Here every refinement candidate outside the rescue's family is inconsistent with the rest
     # points and every other consistent, at a ratio the rescue never reaches by itself
-    from pisml_ros.ident import estimators
+    from pisml_ros.ident import selection
 
-    real = estimators._inconsistent_points
+    real = selection._inconsistent_points
 
     def refinement_inconsistent(name, candidates, points, *args, **kwargs):
-        if estimators._refinement_family(name) is None or name.endswith(" with growing prior"):
+        if selection._refinement_family(name) is None or name.endswith(" with growing prior"):
             return 0
         return max(real(name, candidates, points, *args, **kwargs), 1)
 
-    monkeypatch.setattr(estimators, "_inconsistent_points", refinement_inconsistent)
+    monkeypatch.setattr(selection, "_inconsistent_points", refinement_inconsistent)
     cfg = IdentConfig.from_mapping({**FAST, "refine_rescue_ratio": 1e9, "refine_retry_ratio": 1e9,
                                     "filter_terms": "physics"})
     est = _fit_at_40_db(cfg, train, small)
     meta = est.explicit_model_.metadata
     rescue = meta["refinement_rescue"]
-    assert estimators._refinement_family(rescue["selected_before"]) is None and rescue["before_refinement"]
+    assert selection._refinement_family(rescue["selected_before"]) is None and rescue["before_refinement"]
     assert rescue["ratio"] < cfg.refine_rescue_ratio and rescue["inconsistent_rest_points"] == 0
     assert rescue["run"] and "refined with growing prior" in est.candidates_
     # the unrestricted fallback asks the same of the model the selection takes after the rescue
     fallback = meta["refinement_unrestricted"]
-    assert fallback["before_refinement"] == (estimators._refinement_family(fallback["selected_before"]) is None)
+    assert fallback["before_refinement"] == (selection._refinement_family(fallback["selected_before"]) is None)
     assert fallback["run"] == (fallback["before_refinement"] or fallback["refinement_lost"])
     # on clean records a re-fit from before the refinement wins on its merits: no rescue there
     clean = make_estimator("pisml", cfg).fit(train, small)
@@ -1972,7 +1973,7 @@ def test_the_rescue_asks_for_less_than_the_further_tries():
     # stop 74: the rescue at 2.0x the noise floor (protocol recording 7 at 2.13x, 1.956 / 0.79 % IOD /
     # OOD without it, 0.278 / 0.667 % with it), the second start after it and the unrestricted
     # fallback at 2.5x (the clamp plant's recording 1 at 2.17x after its rescue: both ran, the same model)
-    from pisml_ros.ident.estimators import _noisy_choice_needs_retry
+    from pisml_ros.ident.selection import _noisy_choice_needs_retry
 
     cfg = IdentConfig()
     assert cfg.refine_rescue_ratio == 2.0 < cfg.refine_retry_ratio == 2.5
@@ -1989,7 +1990,7 @@ def test_the_second_start_runs_where_the_first_starts_refinement_is_lost(train, 
     # stop 73, vendor-c recording 1 at 40 dB: both of the first start's refined models blew up, its
     # round 2 came out consistent near the floor but missed an LCL resonance; the second start runs
     from pisml_ros.ident import estimators
-    from pisml_ros.ident.estimators import LONG_BRANCH_SUFFIX, _unpruned_refinement_lost
+    from pisml_ros.ident.selection import LONG_BRANCH_SUFFIX, _unpruned_refinement_lost
 
     hold = 40.0
     assert _unpruned_refinement_lost({"refined": np.inf, "refined" + LONG_BRANCH_SUFFIX: 52.0}, hold)
@@ -2280,7 +2281,7 @@ def test_side_by_side_runs_after_on_the_first_thread_a_job_leaves():
         failing.value()
 
 def test_rivals_are_the_eligible_candidates_near_the_best_score():
-    from pisml_ros.ident.estimators import rival_names
+    from pisml_ros.ident.selection import rival_names
 
     scores = {"refined": 2.2, "pruned +0.1 %": 3.2, "pruned +0.1 % x2": 3.5, "backbone": 2.0, "distilled": np.inf}
     eligible = ["refined", "pruned +0.1 %", "pruned +0.1 % x2", "distilled"]  # the backbone is not eligible

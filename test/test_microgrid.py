@@ -334,7 +334,7 @@ def test_the_alternatives_of_an_identified_unit_each_take_its_place():
     """A unit whose alternative (a candidate that fitted its records as well) has a larger droop
     gain: the 3-bus microgrid with the alternative in the unit's place is unstable where the unit's
     own is stable, and the report says the verdict is open (analysis.operating_point.alternative_verdicts)."""
-    from pisml_ros.ident.estimators import alternative_entry
+    from pisml_ros.ident.selection import alternative_entry
 
     model = plant_as_explicit_model(InverterPlant())
     rival = plant_as_explicit_model(InverterPlant(PlantParameters(mp=0.2)))

@@ -147,7 +147,7 @@ def test_initial_model_is_latched_and_bad_models_do_not_stop_the_analyser(probe,
     narrowed["metadata"]["coefficient_covariance"] = covariance_metadata(
         coefficients.shape, support, np.diag((0.3 * coefficients.ravel()[support]) ** 2))
     # and an alternative of the fit (as good on the records, say) whose voltage integrator grows
-    from pisml_ros.ident.estimators import alternative_entry
+    from pisml_ros.ident.selection import alternative_entry
 
     model = ExplicitModel.load(saved)
     growing = ExplicitModel(model.state_names, model.input_names, model.terms + ["phi_d"],

@@ -14,8 +14,12 @@ __all__ = ["ConfigError", "IdentConfig", "RoleError", "SignalRoles", "METHODS", 
 
 def __getattr__(name):
     # estimators import torch lazily: keep `import pisml_ros.ident` light
-    if name in ("METHODS", "make_estimator", "StageUpdate", "IdentificationCancelled", "selection_warnings"):
+    if name in ("METHODS", "make_estimator", "StageUpdate", "IdentificationCancelled"):
         from . import estimators
 
         return getattr(estimators, name)
+    if name == "selection_warnings":
+        from .selection import selection_warnings
+
+        return selection_warnings
     raise AttributeError(name)

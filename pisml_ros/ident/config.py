@@ -230,7 +230,7 @@ class IdentConfig:
     # selection_rest_offset 0.1: 17 of 24 as "auto", none spurious (2), fits median 43.5 s against
     # 59.0 (bench/sweeps/longbranch-restoffset-s69.json; see refine_long_branch). Since stop 73
     # "fallback" also runs the second start where the first start's refinement is lost (neither
-    # unpruned refined model beats holding the records' first states, estimators._unpruned_refinement_lost):
+    # unpruned refined model beats holding the records' first states, selection._unpruned_refinement_lost):
     # the plants' vendor-c recording 1 at 40 dB from 1.21 / 3.75 % (the first family's round 2,
     # consistent at 1.32x the floor, W 1433: an LCL resonance lost) to 0.428 / 0.895 % (71
     # coefficients, W 17), fit 75 s against 50 s (`bench/candidates.py --plant vendor-c --seed 1 --noise 40`);
@@ -480,7 +480,7 @@ class IdentConfig:
     # wrong grid-strength verdict against 2. Unseen, "physics" is ahead on everything measured.
     # Stop 61: recordings 3 and 4's far equilibria were models with a zero mode (6e-4 and 1e-5 1/s
     # at every rest point) that the selection took for consistent; it now counts such an equilibrium
-    # as none (estimators.ZERO_MODE_MODULUS). With that, "physics" on recordings 0-9
+    # as none (selection.ZERO_MODE_MODULUS). With that, "physics" on recordings 0-9
     # (bench/sweeps/physics-isolated-s61.json): both accuracy targets with no spurious mode on 5 of 10,
     # no operating point > 0.3 p.u. off (recording 4: 0.194 / 0.301 %, ΔQ 0.039; recording 3:
     # 1.25 / 1.30 %, spurious at ug 0.4-0.6, ΔQ 0.087); on 10-23 every model as before
@@ -680,7 +680,7 @@ class IdentConfig:
     selection_floor_tolerance: float = 1.0
     # a prune round (``pruned +B % xR``) whose free-run error on the scoring records rises above
     # (1 + this) x the round before it is lost, and so are the rounds built on it: none of them is
-    # taken as the sparser model near the best, unless it is the best (estimators._lost_rounds);
+    # taken as the sparser model near the best, unless it is the best (selection._lost_rounds);
     # inf: off. Why: each round
     # drops what its shooting windows' quadratic cost model says costs +0.1 % (scaled by the
     # samples), and where a free run over the whole records then loses much more, the pruning
@@ -698,7 +698,7 @@ class IdentConfig:
     # a candidate whose equilibrium at a point where a training record sat at rest has a mode growing
     # faster than this (1/s) counts as inconsistent there, as one with no equilibrium there that,
     # run freely from the rest state, moves more than 10 % within 1 / this seconds (a fold just
-    # before the point is excused where it is passed as slowly; estimators._inconsistent_points);
+    # before the point is excused where it is passed as slowly; selection._inconsistent_points);
     # the candidates with the fewest such points compete (the plant's own boundary mode: +0.25 1/s
     # at ug 1.2). Where the small-signal records sat at rest a mode that does not decay counts (stop
     # 39): they are perturbations about an equilibrium they return to
@@ -720,13 +720,13 @@ class IdentConfig:
     # model's operating point: where the selected candidate has no equilibrium at some of them (as
     # the analysis finds it, from the rest points) and another candidate as consistent with the rest
     # points has one at more, the selection is made again among those with the fewest missing
-    # (estimators._selected). Measured (stop 34, 40 dB, benchmark recording 4): the chosen model
+    # (selection._selected). Measured (stop 34, 40 dB, benchmark recording 4): the chosen model
     # (140 coefficients, 0.63 / 0.73 % IOD / OOD) folded at ug 0.767 and had none at 0.2-0.6; the
     # other candidate consistent with every rest point (175, scored 3.36 % against 2.96 %) has one
     # everywhere: 0.43 / 0.90 %. Empty: no such check
     selection_equilibrium_grid: tuple = (0.2, 0.4, 0.6, 0.8, 1.0, 1.2)
     # the sparser model near the best is not one unstable at a grid voltage of
-    # selection_equilibrium_grid where the best is stable (estimators._chosen_among): what its
+    # selection_equilibrium_grid where the best is stable (selection._chosen_among): what its
     # pruning dropped, at no cost the records can see, flipped the analysis' verdict where they say
     # nothing. Measured (stop 43, 40 dB): on the bench/candidates.py tables of the benchmark's ten
     # recordings, protocol seeds 10-15 and four scenario fits, replayed, it changed one choice of
@@ -743,7 +743,7 @@ class IdentConfig:
     # on noisy records, where the chosen model's slowest mode at the small-signal records' rest points
     # decays slower than this (1/s) and eligible candidates within selection_floor_tolerance of the
     # best score decay at least this fast there, the choice is made again among those
-    # (estimators._decay_rechoice); 0: off. The records cannot tell -0.03 1/s from -0.5 (0.1 s of
+    # (selection._decay_rechoice); 0: off. The records cannot tell -0.03 1/s from -0.5 (0.1 s of
     # small-signal record), but a pruning that dropped an integrator's feedback leaves the first.
     # Measured (stop 75, bench/candidates.py on the 24 protocol recordings at 40 dB, the choice
     # replayed with the engine's own selection): three chosen models decayed slower than 0.19 1/s
