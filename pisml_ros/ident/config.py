@@ -323,6 +323,14 @@ class IdentConfig:
     # (the backbone chosen: 5.0 / 5.4 %, 269 s) and the demo 1.94 / 0.76 s. Each setting moves
     # single recordings by +-0.3 % either way; none is safe enough to be the default
     refine_prune_degree_preference: float = 1.0
+    # the prune rounds do not drop a coefficient whose removal (on their quadratic cost model) would
+    # leave the model's Jacobian at a rest state of the records a mode of modulus below this (1/s)
+    # where it had none (trajfit.backward_elimination); 0: off. Such a mode is a state the model no
+    # longer pulls back (selection.ZERO_MODE_MODULUS counts its equilibrium as none), which the
+    # windows' cost barely sees: stop 75's protocol recording 4 at 40 dB, rounds 2 and 3 (84 and 73
+    # coefficients, 0.226 / 0.303 and 0.231 / 0.290 % IOD / OOD) had lost the pull on Qf (a mode at
+    # 1e-5 1/s) and were inconsistent with every rest point, so round 1 (104) was chosen
+    refine_prune_zero_mode: float = 0.0
     # on noisy data, the refinement's products of the frequency state (roles.frequency) written about
     # its rest value P0, (Pf - P0)*s instead of Pf*s (estimators._couplings_centred): the same field
     # at the start, but Pf*s ≈ P0*s at every rest point, and the refinement and its pruning could
@@ -870,6 +878,7 @@ class IdentConfig:
                     "refine_growing_stability_weight", "refine_stage_prune_budget", "refine_stage_tolerance",
                     "refine_single_precision_stages",
                     "refine_prune_reference_samples", "refine_rest_weight", "limiter_rest_weight",
+                    "refine_prune_zero_mode",
                     "refine_ridge_weight", "refine_max_step", "clean_growing_error",
                     "weight_decay", "node_weight_decay"]:
             if getattr(self, key) < 0:

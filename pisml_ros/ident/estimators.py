@@ -1436,6 +1436,12 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     degrees = term_degrees(model.terms, tuple(model.state_names) + tuple(model.input_names))
     order_weights = cfg.refine_prune_degree_preference ** -(degrees - 1.0)
     ridge_weight = _ridge_weight(train, cfg)
+    # the terms' state gradients at the records' rest states: the pruning keeps a coefficient whose drop
+    # would leave a mode there that does not pull back (IdentConfig.refine_prune_zero_mode)
+    rest_gradients = [model.term_gradients(np.asarray(point["state"], float),
+                                           np.asarray(point["inputs"], float))[:, :model.n_states]
+                      for point in (model.metadata.get("reference_points") or [])] \
+        if cfg.refine_prune_zero_mode > 0 else []
 
     def run(coef, schedule, lambda_stab=0.0, substeps=2, stage_budget=0.0, rest_weight=0.0, log=None,
             damping=START_DAMPING, single_stages=0, max_windows=()):
@@ -1521,7 +1527,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
             # every equation keeps a term: an empty one freezes its state (no isolated equilibrium)
             rise, coef = backward_elimination(base.coefficients, base.hessian, base.support, [budget * base.cost],
                                               order_weights[base.support // model.n_states],
-                                              groups=base.support % model.n_states)[0]
+                                              groups=base.support % model.n_states,
+                                              state_gradients=rest_gradients, zero_mode=cfg.refine_prune_zero_mode)[0]
             if round_ > 1 and np.count_nonzero(coef) == np.count_nonzero(base.coefficients):
                 break  # nothing more to drop: another polish would re-fit the same support
             polish_started, polish_used = time.monotonic(), used[0]

@@ -974,8 +974,35 @@ class _ShootingProblem:
         return blocks["H_prior"].numpy() / np.outer(self.scale, self.scale)
 
 
+class _ZeroModes:
+    """:func:`backward_elimination`'s check for a mode of modulus below ``threshold`` (1/s) in the
+    model's Jacobians at the operating points of ``state_gradients`` (see there); it only judges
+    points where the starting ``coefficients`` have none (the check is off with no gradients or a
+    threshold of 0)."""
+
+    def __init__(self, coefficients, support, scale, state_gradients, threshold: float):
+        self.shape, self.support, self.scale = coefficients.shape, support, scale
+        self.threshold = threshold
+        gradients = list(state_gradients or []) if threshold > 0 else []
+        flat = coefficients.ravel()[support].astype(float) * scale
+        self.gradients = [g for g in gradients if self._smallest(flat, g) >= threshold]
+
+    def _smallest(self, beta, gradient) -> float:
+        flat = np.zeros(int(np.prod(self.shape)))
+        flat[self.support] = beta / self.scale
+        jac = flat.reshape(self.shape).T @ gradient
+        if not np.all(np.isfinite(jac)):
+            return np.inf
+        return float(np.min(np.abs(np.linalg.eigvals(jac))))
+
+    def leaves_zero_mode(self, beta) -> bool:
+        """Whether the coefficients ``beta`` (support, scaled) have such a mode at one of the points."""
+        return any(self._smallest(beta, g) < self.threshold for g in self.gradients)
+
+
 def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support: np.ndarray,
-                         budgets, order_weights=None, groups=None) -> list[tuple[float, np.ndarray]]:
+                         budgets, order_weights=None, groups=None, state_gradients=None,
+                         zero_mode: float = 0.0) -> list[tuple[float, np.ndarray]]:
     """Sparser models from a fitted one by greedy backward elimination on its quadratic cost model.
 
     Repeatedly drops the support coefficient whose removal (the others re-fitted through the
@@ -1000,6 +1027,15 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
     groups : ndarray of int, shape (n_support,), optional
         A label per support coefficient (its equation, say): the last one left of a group is
         never dropped. None: no groups.
+    state_gradients : sequence of ndarray, shape (n_terms, n_states), optional
+        The terms' gradients in the states at some operating points (the records' rest states), so
+        that the model's Jacobian there is ``coefficients.T @ gradient``. With ``zero_mode`` > 0, a
+        drop that leaves that Jacobian an eigenvalue of modulus below ``zero_mode`` (1/s) at one of
+        them, where the model before the drop had none, is not made (that coefficient stays): such
+        a mode is a state the model no longer pulls back, an equilibrium the smallest offset moves
+        far, which the cost of 40 ms windows hardly sees.
+    zero_mode : float
+        See ``state_gradients``; 0: no such check.
 
     Returns
     -------
@@ -1013,6 +1049,8 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
     order_weights = np.ones(beta.size) if order_weights is None else np.asarray(order_weights, dtype=float)
     groups = None if groups is None else np.asarray(groups)
     alive = np.ones(beta.size, dtype=bool)
+    kept = np.zeros(beta.size, dtype=bool)  # drops refused for the mode they would leave
+    modes = _ZeroModes(coefficients, support, d, state_gradients, zero_mode)
     rise = 0.0
     path = [(0.0, beta.copy(), alive.copy())]
     while alive.sum() > 1:
@@ -1023,15 +1061,20 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
         if groups is not None:  # a group's last member stays
             labels, counts = np.unique(groups[live], return_counts=True)
             cost_up = np.where(np.isin(groups[live], labels[counts == 1]), np.inf, cost_up)
+        cost_up = np.where(kept[live], np.inf, cost_up)
         k = int(np.argmin(cost_up * order_weights[live]))
         j = live[k]
         if not np.isfinite(cost_up[k]):
             break
-        rise += float(cost_up[k])
         # drop j: the constrained minimum of the quadratic model, and H⁻¹ restricted to the rest
-        beta = beta - h_inv[:, j] * (beta[j] / h_inv[j, j])
+        dropped = beta - h_inv[:, j] * (beta[j] / h_inv[j, j])
+        dropped[j] = 0.0
+        if modes.leaves_zero_mode(dropped):
+            kept[j] = True
+            continue
+        rise += float(cost_up[k])
+        beta = dropped
         h_inv = h_inv - np.outer(h_inv[:, j], h_inv[j, :]) / h_inv[j, j]
-        beta[j] = 0.0
         h_inv[j, :] = 0.0
         h_inv[:, j] = 0.0
         alive[j] = False
