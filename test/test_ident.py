@@ -274,6 +274,16 @@ def test_backward_elimination_keeps_a_coefficient_whose_drop_leaves_a_mode_that_
     (_, off), = backward_elimination(coef, hessian, support, [1.0], groups=support % 2,
                                      state_gradients=gradients, zero_mode=0.0)
     np.testing.assert_array_equal(off, plain)
+    # a mode that passes near zero at one point only (a slow mode crossing as terms go) is no lost
+    # pull: z' = 0.5 x - 0.5 z + x z without its -0.5 z has z's rate x, zero at x = 0 alone
+    bilinear = np.array([[-1.0, 0.5], [0.0, -0.5], [0.0, 1.0]])  # terms x, z, x*z
+    at_x0, at_x1 = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0]]), np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    support3, hessian3 = np.array([0, 1, 3, 5]), np.diag([1e4, 1e4, 1e-2, 1e4])
+    (_, one), = backward_elimination(bilinear, hessian3, support3, [1.0], groups=support3 % 2,
+                                     state_gradients=[at_x0], zero_mode=0.01)
+    (_, both), = backward_elimination(bilinear, hessian3, support3, [1.0], groups=support3 % 2,
+                                      state_gradients=[at_x0, at_x1], zero_mode=0.01)
+    assert one[1, 1] == -0.5 and both[1, 1] == 0.0
     slow = coef.copy()
     slow[1, 1] = -1e-3  # a mode at 1e-3 1/s from the start
     (_, dropped), = backward_elimination(slow, hessian, support, [1.0], groups=support % 2,

@@ -324,7 +324,7 @@ class IdentConfig:
     # single recordings by +-0.3 % either way; none is safe enough to be the default
     refine_prune_degree_preference: float = 1.0
     # the prune rounds do not drop a coefficient whose removal (on their quadratic cost model) would
-    # leave the model's Jacobian at a rest state of the records a mode of modulus below this (1/s)
+    # leave the model's Jacobian a mode of modulus below this (1/s) at every rest state of the records
     # where it had none (trajfit.backward_elimination); 0: off. Such a mode is a state the model no
     # longer pulls back (selection.ZERO_MODE_MODULUS counts its equilibrium as none), which the
     # windows' cost barely sees: stop 75's protocol recording 4 at 40 dB, rounds 2 and 3 (84 and 73
