@@ -12,8 +12,8 @@ from pisml_ros.data import Dataset, Trajectory, read_dataset, write_dataset
 from pisml_ros.ident import ConfigError, IdentConfig, IdentificationCancelled, SignalRoles, make_estimator
 from pisml_ros.ident.backbone import fit_backbone, noise_moments, sparse_regression
 from pisml_ros.ident.estimators import NO_SMALLSIGNAL_WARNING, backbone_span
-from pisml_ros.ident.selection import MAX_ALTERNATIVES
 from pisml_ros.ident.library import coupling_separation, physics_library
+from pisml_ros.ident.selection import MAX_ALTERNATIVES
 from pisml_ros.ident.trajfit import backward_elimination
 from pisml_ros.model import ExplicitModel
 from pisml_ros.plant import InverterPlant
@@ -289,6 +289,9 @@ def test_backward_elimination_keeps_a_coefficient_whose_drop_leaves_a_mode_that_
     (_, dropped), = backward_elimination(slow, hessian, support, [1.0], groups=support % 2,
                                          state_gradients=gradients, zero_mode=0.01)
     assert dropped[1, 1] == 0.0
+    assert IdentConfig().refine_prune_zero_mode == 0.01  # (the default since stop 76)
+    with pytest.raises(ConfigError, match="refine_prune_zero_mode"):
+        IdentConfig.from_mapping({"refine_prune_zero_mode": -1})
 
 
 def test_order_weights_choose_which_of_two_stand_ins_goes_and_the_budget_counts_true_rises():
