@@ -1437,7 +1437,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     order_weights = cfg.refine_prune_degree_preference ** -(degrees - 1.0)
     ridge_weight = _ridge_weight(train, cfg)
     # the terms' state gradients at the records' rest states: the pruning keeps a coefficient whose drop
-    # would leave a mode there that does not pull back (IdentConfig.refine_prune_zero_mode)
+    # would leave a mode that does not pull back at every one of them (IdentConfig.refine_prune_zero_mode)
     rest_gradients = [model.term_gradients(np.asarray(point["state"], float),
                                            np.asarray(point["inputs"], float))[:, :model.n_states]
                       for point in (model.metadata.get("reference_points") or [])] \
