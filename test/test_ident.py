@@ -1489,10 +1489,14 @@ def test_selection_tolerance_counts_from_the_noise_floor_on_noisy_records():
     assert above["tolerance_floor_pct"] == 1.6 and above["floor_tolerance"] == 1.0
     assert chosen(tolerance_floor=1.6)["chosen"] == "pruned +0.1 % x2"  # floor_tolerance inf: off
     assert chosen(floor_tolerance=1.0)["chosen"] == "pruned +0.1 % x2"  # no floor (clean records)
+    assert chosen(tolerance_floor=1.6, floor_tolerance=2.0)["chosen"] == "pruned +0.1 % x2"  # 1.6 + 3 x 0.6 = 3.4 %
     cfg = IdentConfig()
-    assert cfg.selection_floor_tolerance == 1.0  # (the default since stop 70)
+    assert cfg.selection_floor_tolerance == 2.0  # (the default since stop 77; 1.0 from stop 70)
     configured = _configured_selection(candidates["refined"], candidates, scores, cfg, {}, np.inf, tolerance_floor=1.6)
-    assert configured.metadata["selection"]["chosen"] == "pruned +0.1 %"
+    assert configured.metadata["selection"]["chosen"] == "pruned +0.1 % x2"
+    scores_far = dict(scores, **{"pruned +0.1 % x2": 3.5})  # 3.2x the refined model's share: beyond the cut
+    assert _configured_selection(candidates["refined"], candidates, scores_far, cfg, {}, np.inf,
+                                 tolerance_floor=1.6).metadata["selection"]["chosen"] == "pruned +0.1 %"
     assert _configured_selection(candidates["refined"], candidates, scores, cfg, {}, np.inf,
                                  tolerance=0.0, tolerance_floor=1.6).metadata["selection"]["chosen"] == "refined"
     with pytest.raises(ConfigError, match="selection_floor_tolerance"):
