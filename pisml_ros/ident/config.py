@@ -703,7 +703,10 @@ class IdentConfig:
     # mended, none lost), at most 84 coefficients 34 against 33 (recording 20: 85 -> 70, 0.253 / 0.343
     # -> 0.352 / 0.417 %; 27: 74 -> 64), every other model the same, fits median 42.6 s. The risk is
     # stop 70's recording 2 above (2.6x its refined model's share, chosen at 2.0): today's engine
-    # builds other candidates there and keeps its 0.427 / 0.474 %
+    # builds other candidates there and keeps its 0.427 / 0.474 %. Elsewhere (make bench-plants,
+    # make bench-scenarios' 40 dB rows): vendor-c recording 1 lost to a sparser round (0.428 / 0.895 %,
+    # 71 coefficients -> 0.915 / 0.642 %, 57), the scenarios 9 of 22 as before: even on accuracy over
+    # the three benchmarks, sparser on four fits
     selection_floor_tolerance: float = 2.0
     # a prune round (``pruned +B % xR``) whose free-run error on the scoring records rises above
     # (1 + this) x the round before it is lost, and so are the rounds built on it: none of them is
