@@ -1860,6 +1860,66 @@ def test_physics_filter_start_drops_cancelling_terms_and_keeps_the_starts_field_
     assert distance(restricted.coefficients, truth) < 1.05 * distance(coef, truth)
 
 
+def test_power_rows_keep_what_a_low_pass_filter_of_a_measured_power_gives_them():
+    from pisml_ros.ident.library import power_row_mask
+
+    terms = ["1", "Pf", "Qf", "delta", "phi_d", "ig_d*vc_d", "ig_d**2", "il_q*ig_d", "Pf*il_d", "il_d",
+             "ug*cos(delta - theta_g)", "vc_d**3", "Pf*Qf"]
+    mask = power_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles())
+
+    def allowed(state):
+        return [t for t, keep in zip(terms, mask[:, STATE_NAMES.index(state)]) if keep]
+
+    # the constant, the row's own state and products of two dq signals (v·i and, behind a damping
+    # resistor, i·i); no angle, controller state, frequency coupling, plain signal or cubic
+    assert allowed("Pf") == ["1", "Pf", "ig_d*vc_d", "ig_d**2", "il_q*ig_d"]
+    assert allowed("Qf") == ["1", "Qf", "ig_d*vc_d", "ig_d**2", "il_q*ig_d"]
+    for state in ("delta", "phi_d", "il_d", "vc_d", "ig_d"):
+        assert allowed(state) == terms
+    assert power_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles(power=())).all()
+    with pytest.raises(ConfigError, match="power_terms must be physics or any, got 'linear'"):
+        IdentConfig.from_mapping({"power_terms": "linear"})
+
+
+def test_grid_current_rows_take_the_grid_inductors_voltage_as_one_term_where_the_start_has_it(train):
+    from pisml_ros.ident.estimators import _integrators_restricted
+    from pisml_ros.ident.library import grid_voltage_pairs
+
+    terms = physics_library(SignalRoles(), STATE_NAMES, coupling=True)
+    signals = STATE_NAMES + INPUT_NAMES
+    pairs = grid_voltage_pairs(terms, STATE_NAMES, signals, SignalRoles())
+    # ig_d pairs vc_d with ug·cos(θg − δ), ig_q pairs vc_q with ug·sin(θg − δ), written as the library writes them
+    assert [(STATE_NAMES[row], terms[kv], terms[kg], sign) for row, kv, kg, sign, _ in pairs] == [
+        ("ig_d", "vc_d", "ug*cos(theta_g - delta)", 1.0), ("ig_q", "vc_q", "ug*sin(theta_g - delta)", 1.0)]
+    # a grid term written the other way round carries its sign
+    flipped = [t.replace("sin(theta_g - delta)", "sin(delta - theta_g)") for t in terms]
+    assert [p[3] for p in grid_voltage_pairs(flipped, STATE_NAMES, signals, SignalRoles())] == [1.0, -1.0]
+
+    from pisml_ros.ident.library import filter_row_mask
+
+    backbone = fit_backbone(train, terms)
+    # a start whose filter rows hold the physics terms only (the restriction's re-fit keeps them)
+    coef = np.where(filter_row_mask(terms, STATE_NAMES, signals, SignalRoles()), backbone.coefficients, 0.0)
+    for row, kv, kg, _, _ in pairs:  # the start's two coefficients 1 % apart (a fit's noise)
+        coef[kv, row], coef[kg, row] = 7500.0, -7425.0
+    start = ExplicitModel(STATE_NAMES, INPUT_NAMES, terms, coef)
+    tied = _integrators_restricted(start, IdentConfig.from_mapping({"filter_voltage_tie": 0.05}), train)
+    assert tied.metadata["filter_voltage_tie"] == ["ig_d", "ig_q"]
+    for row, kv, kg, _, tie in pairs:
+        assert tied.coefficients[kv, row] == 0 and tied.coefficients[kg, row] == 0
+        assert tied.coefficients[tied.terms.index(tie), row] > 7000
+        # the model is data: the new term rebuilds from its string alone
+        assert ExplicitModel.from_dict(tied.to_dict()).terms == tied.terms
+    # the other rows are the restricted start's, and the new columns are zero there
+    untied = _integrators_restricted(start, IdentConfig(), train)
+    others = [j for j, s in enumerate(STATE_NAMES) if s not in ("ig_d", "ig_q")]
+    assert np.array_equal(tied.coefficients[:len(terms), others], untied.coefficients[:, others])
+    assert not tied.coefficients[len(terms):, others].any()
+    # 1 % apart is beyond a tolerance of 0.5 %: nothing tied
+    assert _integrators_restricted(start, IdentConfig.from_mapping({"filter_voltage_tie": 0.005}),
+                                   train).terms == terms
+
+
 def _fit_at_40_db(cfg, train, small):
     """A PISML fit of ``cfg`` on the training and small-signal records with 40 dB measurement noise."""
     from pisml_ros.plant.noise import add_measurement_noise
