@@ -734,7 +734,11 @@ class IdentConfig:
     # builds other candidates there and keeps its 0.427 / 0.474 %. Elsewhere (make bench-plants,
     # make bench-scenarios' 40 dB rows): vendor-c recording 1 lost to a sparser round (0.428 / 0.895 %,
     # 71 coefficients -> 0.915 / 0.642 %, 57), the scenarios 9 of 22 as before: even on accuracy over
-    # the three benchmarks, sparser on four fits
+    # the three benchmarks, sparser on four fits. Checked at stop 78 on recordings no rule had been
+    # made on (seeds 40-55, bench/sweeps/default-unseen-40-55-s78.json; bench/selection_replay.py on
+    # their candidate tables with 1.0): 10 of 16 against 9 (recording 48: 1.0 takes the refined model,
+    # 217 coefficients, outside the targets; 2.0 its third prune round, 0.143 / 0.299 %, 61), none
+    # lost, three more sparser (41: 71 -> 64, 43: 83 -> 55, 46: 79 -> 73)
     selection_floor_tolerance: float = 2.0
     # a prune round (``pruned +B % xR``) whose free-run error on the scoring records rises above
     # (1 + this) x the round before it is lost, and so are the rounds built on it: none of them is
@@ -796,7 +800,9 @@ class IdentConfig:
     # coefficients) instead of 0.450 / 0.790 % (97). Asked both ways (also stable where the best is
     # unstable) it would have changed three replayed choices for the worse (20 kHz seed 1:
     # 0.190 / 3.66 % instead of 0.328 / 0.944 %). One mended, one broken: the data do not decide a
-    # slow mode's sign out there, and no direction of this rule does. Not the default
+    # slow mode's sign out there, and no direction of this rule does. Not the default. Stop 78,
+    # replayed on the unseen recordings 40-55: 10 of 16 as without (44, 45, 50 re-chosen, none across
+    # the targets; 50 takes 120 coefficients against 80)
     selection_grid_stability: bool = False
     # on noisy records, where the chosen model's slowest mode at the small-signal records' rest points
     # decays slower than this (1/s) and eligible candidates within selection_floor_tolerance of the
