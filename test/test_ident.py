@@ -1883,7 +1883,7 @@ def test_power_rows_keep_what_a_low_pass_filter_of_a_measured_power_gives_them()
 
 def test_grid_current_rows_take_the_grid_inductors_voltage_as_one_term_where_the_start_has_it(train):
     from pisml_ros.ident.estimators import _integrators_restricted
-    from pisml_ros.ident.library import grid_voltage_pairs
+    from pisml_ros.ident.library import filter_row_mask, grid_voltage_pairs
 
     terms = physics_library(SignalRoles(), STATE_NAMES, coupling=True)
     signals = STATE_NAMES + INPUT_NAMES
@@ -1894,8 +1894,6 @@ def test_grid_current_rows_take_the_grid_inductors_voltage_as_one_term_where_the
     # a grid term written the other way round carries its sign
     flipped = [t.replace("sin(theta_g - delta)", "sin(delta - theta_g)") for t in terms]
     assert [p[3] for p in grid_voltage_pairs(flipped, STATE_NAMES, signals, SignalRoles())] == [1.0, -1.0]
-
-    from pisml_ros.ident.library import filter_row_mask
 
     backbone = fit_backbone(train, terms)
     # a start whose filter rows hold the physics terms only (the restriction's re-fit keeps them)

@@ -205,9 +205,8 @@ def power_row_mask(terms: Sequence[str], state_names: Sequence[str], signals: Se
     dq = set(roles.dq_signals())
     for k, term in enumerate(terms):
         _, expr = parse_term(term, signals).as_coeff_Mul()
-        factors = expr.as_powers_dict() if not expr.is_number else {}
-        product = (sum(int(e) if e.is_Integer else 99 for e in factors.values()) == 2
-                   and all(getattr(b, "name", None) in dq for b in factors))
+        factors = {} if expr.is_number else expr.as_powers_dict()
+        product = sum(factors.values()) == 2 and all(getattr(b, "name", None) in dq for b in factors)
         for row, own in rows.items():
             if not (expr.is_number or product or (expr.is_Symbol and expr.name == own)):
                 mask[k, row] = False
