@@ -378,7 +378,11 @@ class IdentConfig:
     # 0.427 / 0.474 % round scored 2.41 % against the default rounds' 3.17 %, but the selection takes
     # the family of the best-scoring candidate (the default family's unpruned model, 2.20 %) and
     # chose 1.673 / 2.061 % again; choosing the family by its pruned models' scores was measured
-    # worse before
+    # worse before. Stop 78, polish windows (50, 200) (the long branch then at 200 too;
+    # `bench/setting_sweep.py run --name polish200-s78 --set refine_polish_windows=50,200 --seeds
+    # 40-55`, against default-unseen-40-55-s78.json): 9 of 16 within both accuracy targets with no
+    # spurious mode against 10 (won 40, 44, 54; lost 42, 43, 50, 51), at most 84 coefficients 12
+    # against 15: a reshuffle again. Not taken
     refine_polish_windows: tuple = (50, 100)
     # on noisy data: a second branch of each refinement start after its growing-window stages, the
     # refined model re-fitted in the polish's longest windows (this many evaluations), then pruned and
