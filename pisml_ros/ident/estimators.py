@@ -975,13 +975,17 @@ def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Datas
                                     own_loop=cfg.integrator_terms == "linear")
         meta["integrator_terms"] = cfg.integrator_terms
     coef = np.where(mask, model.coefficients, 0.0)
-    if cfg.filter_terms == "physics" and train is not None:
-        coef = _filter_rows_physics(model, coef, cfg.roles, train)
-        meta["filter_terms"] = "physics"
-    if cfg.power_terms == "physics" and train is not None:
-        coef = _rows_refitted(model, coef, power_row_mask(model.terms, list(model.state_names), signals, cfg.roles),
-                              train)
-        meta["power_terms"] = "physics"
+    if train is not None:
+        # the filter's and the power's rows are disjoint: one re-fit over the records serves both
+        allowed = np.ones(coef.shape, dtype=bool)
+        if cfg.filter_terms == "physics":
+            allowed &= filter_row_mask(model.terms, list(model.state_names), signals, cfg.roles)
+            meta["filter_terms"] = "physics"
+        if cfg.power_terms == "physics":
+            allowed &= power_row_mask(model.terms, list(model.state_names), signals, cfg.roles)
+            meta["power_terms"] = "physics"
+        if not allowed.all():
+            coef = _rows_refitted(model, coef, allowed, train)
     restricted = ExplicitModel(model.state_names, model.input_names, model.terms, coef, meta)
     if cfg.filter_terms == "physics" and cfg.filter_voltage_tie > 0 and train is not None:
         return _grid_voltage_tied(restricted, cfg.roles, train, cfg.filter_voltage_tie)
@@ -1025,23 +1029,16 @@ def _grid_voltage_tied(model: ExplicitModel, roles: SignalRoles, train: Dataset,
     return ExplicitModel(model.state_names, model.input_names, terms, refitted, meta)
 
 
-def _filter_rows_physics(model: ExplicitModel, coef: np.ndarray, roles: SignalRoles, train: Dataset) -> np.ndarray:
-    """``coef`` (over ``model``'s terms) with the output filter's rows kept to the terms
-    :func:`~.library.filter_row_mask` admits, those re-fitted to the rows' own field over the
-    records' samples.
+def _rows_refitted(model: ExplicitModel, coef: np.ndarray, allowed: np.ndarray, train: Dataset) -> np.ndarray:
+    """``coef`` (over ``model``'s terms) with each row that meets a term ``allowed`` bars kept to
+    the terms it admits (the output filter's rows to :func:`~.library.filter_row_mask`'s, …), those
+    re-fitted (least squares over the records' samples) to the row's own field.
 
     The dropped terms stood in for the kept ones where the records are (collinear there): the
     re-fit keeps what the rows learned where the data are and drops what they extrapolate. A re-fit
     on the records' derivatives (equation error, noise-compensated) started 2 of 11 refinements at
     an unstable LCL mode (+2000 1/s) at 40 dB and lost every 40 dB target there (stop 44).
     """
-    signals = list(model.state_names) + list(model.input_names)
-    return _rows_refitted(model, coef, filter_row_mask(model.terms, list(model.state_names), signals, roles), train)
-
-
-def _rows_refitted(model: ExplicitModel, coef: np.ndarray, allowed: np.ndarray, train: Dataset) -> np.ndarray:
-    """``coef`` with each row that meets a term ``allowed`` bars re-fitted (least squares over the
-    records' samples) to its own field on the terms it admits."""
     signals = list(model.state_names) + list(model.input_names)
     z = np.concatenate([np.hstack([tr.x, tr.u]) for tr in train])
     theta = term_set(model.terms, signals).evaluate(z)
