@@ -525,10 +525,12 @@ class IdentConfig:
     # with filter_terms "physics": a grid-current row whose voltage and grid term have equal and
     # opposite coefficients within this relative tolerance at the refinement's start gets them as one
     # term, the voltage across the grid-side inductor (estimators._grid_voltage_tied); 0: off.
-    # Why tried (stop 78): recording 39's IOD miss (0.905 %) is a drift of ig_d from the plant's
-    # equilibrium at 2.9 p.u./s, which its ig_d row's 7506·vc_d - 7503·ug·cos(delta - theta_g)
-    # explains (both voltages near 1 p.u. everywhere: the data set each coefficient only to its
-    # noise, and a mismatch of 4e-4 is a bias). Measured at 0.05 on recordings 24-39
+    # Why tried (stop 78): recording 39's ig_d row has 7506·vc_d - 7503·ug·cos(delta - theta_g) and
+    # a field of 2.9 1/s at the plant's equilibrium (both voltages near 1 p.u. everywhere: the data
+    # set each coefficient only to its noise, and a mismatch of 4e-4 is a bias). But it is not where
+    # the IOD misses come from: over the 32 chosen models of 24-55 the ig_d row's field at the test
+    # start does not go with IOD (correlation -0.12; the il_d row's 0.47), and setting the ig_d
+    # row's constant so that it vanishes there (an oracle) mends none of the eight misses. Measured at 0.05 on recordings 24-39
     # (bench/sweeps/voltage-tie-s78.json): 7 of 16 within both targets with no spurious mode against
     # 9; IOD 29 0.643 -> 0.509, 36 0.840 -> 0.567, 39 0.905 -> 0.775 %, OOD 31 1.379 -> 1.144 %
     # (none enough), 34, 35, 37, 38 better, but 24 (OOD 1.051), 25 (IOD 0.900) and 27 (OOD 1.141)

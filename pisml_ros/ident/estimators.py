@@ -1000,8 +1000,8 @@ def _grid_voltage_tied(model: ExplicitModel, roles: SignalRoles, train: Dataset,
 
     Both voltages sit near 1 p.u. at every point the records visit, so a fit sets each coefficient
     (~wb/Lg, 7500 1/s) only to its noise, and their mismatch is a bias of the row: at 40 dB,
-    recording 39's model had 7506 and −7503, a drift of 2.9 p.u./s in ig_d from the plant's own
-    equilibrium, which the test starts at.
+    recording 39's model had 7506 and −7503, a field of 2.9 1/s in ig_d at the plant's own
+    equilibrium (``IdentConfig.filter_voltage_tie`` for why this is not the IOD misses' cause).
     """
     signals = list(model.state_names) + list(model.input_names)
     pairs = grid_voltage_pairs(model.terms, model.state_names, signals, roles)
