@@ -40,6 +40,7 @@ def test_the_replay_takes_the_settings_given_and_reports_the_targets(tmp_path, c
     off = capsys.readouterr().out
     assert "'pruned +0.1 % x3' 0.278 / 1.224 %" in off and "OUTSIDE; same" in off
     assert "0 of 1 within both 40 dB targets" in off
+    assert "a candidate within both targets with no spurious mode exists in 1 of 1 fits" in off
     assert selection_replay.main([str(path)]) == 0  # the default margin, 0.1 1/s
     on = capsys.readouterr().out
     assert "'pruned +0.1 % x3 at long windows' 0.269 / 0.546 %" in on and "was 'pruned +0.1 % x3'" in on
