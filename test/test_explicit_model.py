@@ -467,6 +467,15 @@ def test_field_jacobian_in_torch_matches_the_term_gradients(terms):
     assert jac.shape == (11, n, n)
 
 
+def test_uncertainty_note_speaks_only_where_the_verdict_is_open():
+    from pisml_ros.analysis.operating_point import uncertainty_note
+
+    assert uncertainty_note(None) == ""
+    assert uncertainty_note({"verdict": "stable", "max_real_interval": [-0.9, -0.5]}) == ""
+    assert uncertainty_note({"verdict": "undetermined", "max_real_interval": [-0.3141, 0.05]}) == (
+        "not decided by the data: max real part -0.314 .. 0.05 1/s, 2 std")
+
+
 def test_data_coverage_flags_operating_points_outside_the_training_inputs():
     from pisml_ros.analysis.operating_point import coverage_note, data_coverage
     from pisml_ros.plant import InverterPlant

@@ -118,6 +118,15 @@ def verdict_differs(max_real: float | None, other: float | None) -> bool:
     return (max_real < 0) != (other < 0)
 
 
+def uncertainty_note(uncertainty: dict | None) -> str:
+    """A line on ``report["uncertainty"]`` where the verdict is within two standard deviations of
+    the boundary (the model's guess, not the data's), else ``""``."""
+    if not uncertainty or uncertainty["verdict"] != "undetermined":
+        return ""
+    low, high = uncertainty["max_real_interval"]
+    return f"not decided by the data: max real part {low:.3g} .. {high:.3g} 1/s, 2 std"
+
+
 def alternatives_note(alternatives: dict | None) -> str:
     """A line on ``report["alternatives"]`` (:func:`alternative_verdicts`) where the candidates
     disagree with the model's verdict, else ``""``."""

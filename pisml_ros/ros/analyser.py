@@ -41,7 +41,7 @@ from std_msgs.msg import String  # noqa: E402
 
 from ..analysis.margins import distance_to_boundary, root_locus  # noqa: E402
 from ..analysis.operating_point import (alternatives_note, coverage_note, data_coverage,  # noqa: E402
-                                         operating_point_report, other_equilibria_note)
+                                         operating_point_report, other_equilibria_note, uncertainty_note)
 from ..fileio import atomic_write_text  # noqa: E402
 from .conversions import failed_stability_message, model_from_message, stability_message  # noqa: E402
 
@@ -246,9 +246,8 @@ class AnalyserNode(Node):
                 level, message = DiagnosticStatus.WARN, "margin below threshold"
             # a verdict within two standard deviations of the boundary is the model's, not the data's
             uncertainty = report.get("uncertainty")
-            if uncertainty and uncertainty["verdict"] == "undetermined":
-                low_re, high_re = uncertainty["max_real_interval"]
-                message += f" (not decided by the data: max real part {low_re:.3g} .. {high_re:.3g} 1/s, 2 std)"
+            undecided = uncertainty_note(uncertainty)
+            message += f" ({undecided})" if undecided else ""
             # other candidates that fit the records as well and disagree: the records do not decide
             rivals = alternatives_note(report.get("alternatives"))
             message += f" ({rivals})" if rivals else ""
@@ -306,10 +305,8 @@ class AnalyserNode(Node):
         report.update(model_id=model_id, unit=unit)
         self.microgrid_pub.publish(String(data=json.dumps(report, default=_json_float)))
         verdict = "stable" if report["stable"] else "unstable"
-        uncertainty = report.get("uncertainty")
-        if uncertainty and uncertainty["verdict"] == "undetermined":
-            low, high = uncertainty["max_real_interval"]
-            verdict += f" (not decided by the data: max real part {low:.3g} .. {high:.3g} 1/s, 2 std)"
+        undecided = uncertainty_note(report.get("uncertainty"))
+        verdict += f" ({undecided})" if undecided else ""
         rivals = alternatives_note(report.get("alternatives"))
         verdict += f" ({rivals})" if rivals else ""
         deciding = report["weakest_modes"][0] if report["weakest_modes"] else {}
