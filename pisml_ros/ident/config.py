@@ -641,7 +641,11 @@ class IdentConfig:
     # 0.567 / 0.836): 0.1: 0.380 / 0.657, 0.835 / 0.529, 0.477 / 0.556, 0.605 / 1.42, 0.311 / 0.584
     # (3 of 5 within both targets against 2; different ones). Why it was tried: on the near misses
     # 5-7 the IOD error is a slow drift from the test's start, the plant's equilibrium at ug 1.0,
-    # where the models' f is not zero (README, "Where the near misses' IOD comes from")
+    # where the models' f is not zero (README, "Where the near misses' IOD comes from"). Stop 79, 0.1 on
+    # the unseen recordings 56-71 (`bench/setting_sweep.py run --name eqweight01-s79 --set
+    # refine_equilibrium_weight=0.1 --seeds 56-71`, against default-unseen-56-71-s79): 9 of 16 either
+    # way (won 57, 60, 71; lost 56 and 64 to 0.96 / 1.12 and 0.33 / 1.31 %, 61 spurious at ug 0.2-0.6),
+    # at most 84 coefficients 9 against 12
     refine_equilibrium_weight: float = 0.01
     # on noisy data, the polish's equilibrium prior in states instead (0: as in the other stages): at
     # each rest state the distance to the model's equilibrium next to it (J⁻¹f, a Newton step) in
