@@ -416,6 +416,11 @@ class IdentConfig:
     # 43.5 s against 59.0 s, worst 97 s against 127 s, CPU median 68.3 s against 99.4 s
     refine_long_branch: bool = True
     refine_long_branch_evaluations: int = 8
+    # Stop 80, twice the evaluations (`bench/setting_sweep.py run --name polisheval-s80 --set
+    # refine_polish_evaluations=16,12 --set refine_long_branch_evaluations=16 --seeds 56-71 --noise 40`,
+    # against default-unseen-56-71-s79.json): 5 of 16 within both accuracy targets with no spurious mode
+    # against 9 (won 57; lost 56, 58, 61, 64, 70), microgrid and weak-grid verdicts 19 of 160 wrong,
+    # fits median 53 s against 41 s. Longer polishes do not mend the fits that no candidate gets right
     refine_polish_evaluations: tuple = (8, 6)
     # Levenberg-Marquardt damping (relative to the normal equations' diagonal) that each polish stage
     # starts from (the growing stages start from 1e-5). Stop 66: at 1e-5 a polish after pruning
