@@ -420,7 +420,10 @@ class IdentConfig:
     # refine_polish_evaluations=16,12 --set refine_long_branch_evaluations=16 --seeds 56-71 --noise 40`,
     # against default-unseen-56-71-s79.json): 5 of 16 within both accuracy targets with no spurious mode
     # against 9 (won 57; lost 56, 58, 61, 64, 70), microgrid and weak-grid verdicts 19 of 160 wrong,
-    # fits median 53 s against 41 s. Longer polishes do not mend the fits that no candidate gets right
+    # fits median 53 s against 41 s. Longer polishes do not mend the fits that no candidate gets right.
+    # Half (`--name polisheval-half-s80 --set refine_polish_evaluations=4,3 --set
+    # refine_long_branch_evaluations=4`, same recordings): 7 of 16 (won 63; lost 58, 64, 70), at most 84
+    # coefficients on 8 against 12, verdicts 29 of 160 wrong, fits median 43 s (more of them rescued)
     refine_polish_evaluations: tuple = (8, 6)
     # Levenberg-Marquardt damping (relative to the normal equations' diagonal) that each polish stage
     # starts from (the growing stages start from 1e-5). Stop 66: at 1e-5 a polish after pruning
