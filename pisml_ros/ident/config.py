@@ -423,7 +423,7 @@ class IdentConfig:
     # fits median 53 s against 41 s. Longer polishes do not mend the fits that no candidate gets right.
     # Half (`--name polisheval-half-s80 --set refine_polish_evaluations=4,3 --set
     # refine_long_branch_evaluations=4`, same recordings): 7 of 16 (won 63; lost 58, 64, 70), at most 84
-    # coefficients on 8 against 12, verdicts 29 of 160 wrong, fits median 43 s (more of them rescued)
+    # coefficients on 8 against 12, verdicts 29 of 160 wrong, fits median 43 s
     refine_polish_evaluations: tuple = (8, 6)
     # Levenberg-Marquardt damping (relative to the normal equations' diagonal) that each polish stage
     # starts from (the growing stages start from 1e-5). Stop 66: at 1e-5 a polish after pruning
