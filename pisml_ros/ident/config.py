@@ -291,7 +291,12 @@ class IdentConfig:
     # 0, 1, 2 and 4, 0.15 / 0.47 (71), 0.91 / 0.44 (82, spurious unstable at ug 0.2), 0.53 / 0.49
     # (77, spurious at 0.2-0.4; it scored 1.9x the best and won only through the refined model's
     # inflated score, see selection_tolerance), 0.60 / 0.94 (127, spurious at 0.2-1.1); 3 unchanged;
-    # 60-67 s. Not taken
+    # 60-67 s. Not taken. Stop 80, 4 rounds with today's engine (`bench/setting_sweep.py run --name
+    # prunerounds4-s80 --set refine_prune_rounds=4 --seeds 56-71 --noise 40`, against
+    # default-unseen-56-71-s79.json): the fourth round chosen on 12 of 16, and the same 9 of 16 within both
+    # accuracy targets with no spurious mode (none won, none lost), every target on 8 as before;
+    # coefficients median 61 against 66, IOD median 0.325 against 0.369 %, OOD median 0.390 against
+    # 0.451 %; fits median 44 s against 41 s. One set only, so not taken yet: the next to try on 72-87
     refine_prune_rounds: int = 3
     # the rounds' budget is a fraction of the polished cost for this many training samples (the
     # protocol's 12 records of 401): with N samples it is scaled by this / N; 0: not scaled. The
