@@ -296,7 +296,14 @@ class IdentConfig:
     # default-unseen-56-71-s79.json): the fourth round chosen on 12 of 16, and the same 9 of 16 within both
     # accuracy targets with no spurious mode (none won, none lost), every target on 8 as before;
     # coefficients median 61 against 66, IOD median 0.325 against 0.369 %, OOD median 0.390 against
-    # 0.451 %; fits median 44 s against 41 s. One set only, so not taken yet: the next to try on 72-87
+    # 0.451 %; fits median 44 s against 41 s. Stop 81 on the next two sets (prunerounds4-72-87-s81.json
+    # against default-unseen-72-87-s79.json, prunerounds4-88-103-s81.json against
+    # default-unseen-88-103-s80.json): 72-87 13 of 16 against 12 (won 83, 0.586 / 0.238 -> 0.121 / 0.505 %;
+    # 84 took a sparser model with spurious modes at ug 0.2-0.6, outside the targets either way), 88-103
+    # 6 against 7 (lost 103, 0.289 -> 0.545 % IOD; 98 0.703 / 1.282 -> 0.168 / 0.322 % but spurious at
+    # ug 0.2). Over the 48: 28 against 28, spurious on 6 against 4, at most 84 coefficients on 41
+    # against 39, fits median 50 s (72-87 and 88-103, this stop's machine; the defaults' 36 and 44 s
+    # were measured at stops 79-80). It reshuffles too, and gains nothing on the targets: not taken
     refine_prune_rounds: int = 3
     # the rounds' budget is a fraction of the polished cost for this many training samples (the
     # protocol's 12 records of 401): with N samples it is scaled by this / N; 0: not scaled. The
