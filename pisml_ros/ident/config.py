@@ -303,7 +303,8 @@ class IdentConfig:
     # 6 against 7 (lost 103, 0.289 -> 0.545 % IOD; 98 0.703 / 1.282 -> 0.168 / 0.322 % but spurious at
     # ug 0.2). Over the 48: 28 against 28, spurious on 6 against 4, at most 84 coefficients on 41
     # against 39, fits median 50 s (72-87 and 88-103, this stop's machine; the defaults' 36 and 44 s
-    # were measured at stops 79-80). It reshuffles too, and gains nothing on the targets: not taken
+    # were measured at stops 79-80; the defaults on 104-119 this stop: 48.2 s). It reshuffles too, and
+    # gains nothing on the targets: not taken
     refine_prune_rounds: int = 3
     # the rounds' budget is a fraction of the polished cost for this many training samples (the
     # protocol's 12 records of 401): with N samples it is scaled by this / N; 0: not scaled. The
