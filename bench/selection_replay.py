@@ -77,6 +77,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     config = IdentConfig.load(None, settings_or_exit(args.set, parser))
     rows, reachable = [], 0
+    limited: dict = {"selection": [], "fit": []}  # the seeds outside, by what could mend them
     for path in args.tables:
         try:
             table = json.loads(Path(path).read_text())
@@ -86,9 +87,15 @@ def main(argv=None) -> int:
         row = table["rows"][chosen]
         rows.append(row)
         # the selection's ceiling: some candidate of the fit is within, whichever rule finds it
-        reachable += any(within(r) for r in table["rows"].values())
+        inside = sum(within(r) for r in table["rows"].values())
+        reachable += inside > 0
         before = table["rows"][fitted]
         mark = "same" if chosen == fitted else f"was {fitted!r} ({percent(before['iod'])} / {percent(before['ood'])} %)"
+        if not within(row):
+            # another choice among this fit's candidates could mend it, or only a better fit
+            kind = "selection" if inside else "fit"
+            limited[kind].append(str(table["seed"]))
+            mark += f"; {kind}-limited ({inside} candidate{'s' if inside != 1 else ''} within)"
         print(f"{table['scenario']} {table['plant']} seed {table['seed']} {table['noise']}: {chosen!r} "
               f"{percent(row['iod'])} / {percent(row['ood'])} %, {row['coefficients']} coefficients, "
               f"{'within' if within(row) else 'OUTSIDE'}; {mark}")
@@ -98,6 +105,9 @@ def main(argv=None) -> int:
           f"{sum(meets(r)['compression'] for r in rows)}")
     print(f"a candidate within both targets with no spurious mode exists in {reachable} of {len(rows)} fits "
           "(what a selection could reach; the others only a better fit can mend)")
+    if rows and not all(map(within, rows)):
+        print(f"outside: selection-limited seeds {', '.join(limited['selection']) or 'none'}; "
+              f"fit-limited seeds {', '.join(limited['fit']) or 'none'}")
     return 0
 
 
