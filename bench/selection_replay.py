@@ -91,21 +91,22 @@ def main(argv=None) -> int:
         reachable += inside > 0
         before = table["rows"][fitted]
         mark = "same" if chosen == fitted else f"was {fitted!r} ({percent(before['iod'])} / {percent(before['ood'])} %)"
-        if not within(row):
+        met = within(row)
+        if not met:
             # another choice among this fit's candidates could mend it, or only a better fit
             kind = "selection" if inside else "fit"
             limited[kind].append(str(table["seed"]))
             mark += f"; {kind}-limited ({inside} candidate{'s' if inside != 1 else ''} within)"
         print(f"{table['scenario']} {table['plant']} seed {table['seed']} {table['noise']}: {chosen!r} "
               f"{percent(row['iod'])} / {percent(row['ood'])} %, {row['coefficients']} coefficients, "
-              f"{'within' if within(row) else 'OUTSIDE'}; {mark}")
+              f"{'within' if met else 'OUTSIDE'}; {mark}")
     median = {key: statistics.median(np.inf if r[key] is None else r[key] for r in rows) for key in ("iod", "ood")}
     print(f"{sum(map(within, rows))} of {len(rows)} within both 40 dB targets with no spurious mode; "
           f"median IOD {median['iod']:.3f} %, OOD {median['ood']:.3f} %; at most 84 coefficients: "
           f"{sum(meets(r)['compression'] for r in rows)}")
     print(f"a candidate within both targets with no spurious mode exists in {reachable} of {len(rows)} fits "
           "(what a selection could reach; the others only a better fit can mend)")
-    if rows and not all(map(within, rows)):
+    if any(limited.values()):
         print(f"outside: selection-limited seeds {', '.join(limited['selection']) or 'none'}; "
               f"fit-limited seeds {', '.join(limited['fit']) or 'none'}")
     return 0
