@@ -48,6 +48,10 @@ DEFECTIVE_OVERLAP = 1e-6
 # evaluation): 2 cores 0.76 / 0.58 / 0.69 / 0.84 s in 1 / 2 / 3 / 4 parts; 16 cores (a lent H200
 # machine) 0.85 / 0.76 / 0.82 / 1.33 / 2.28 / 2.89 / 6.07 s in 1 / 2 / 3 / 4 / 6 / 8 / 16 parts. There,
 # torch's default of a part per core made a 40 dB identification take over 420 s (71 s in 2 parts).
+# Stop 83 (scratch, 2 cores, windows of 25, 219 coefficients, a tangent pass with torch and the BLAS on
+# one thread): 0.59 s in 1 part, 0.48 s in 2 threads, 0.34-0.48 s (mean 0.41) in 2 spawned processes
+# with a half each, their Hessians to the bit the threads' sum. A process pool would save ~15 % of the
+# tangent passes (~5 % of a fit) and add its start-up, data shipping and failure modes: not taken.
 SHOOTING_PARTS_MAX = 2
 
 
