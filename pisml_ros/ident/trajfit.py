@@ -588,6 +588,7 @@ class _ShootingProblem:
 
             self.terms.values_and_jacobian_torch(torch.cat([self.X[:1, 0], self.U[:1, 0]], dim=-1),
                                                  self._matrix(theta), self.n)  # compiled once
+            self.terms.evaluate_split_torch(self.X[:1, 0], self.U[:1, 0])
             self._pool = ThreadPoolExecutor(parts, "pisml-shoot")
         futures = [self._pool.submit(self._shoot_part, theta, z[part], part, tangents, False, kept) for part in slices]
         extra = beside() if beside else None
@@ -632,7 +633,7 @@ class _ShootingProblem:
             return torch.nan_to_num((x - X[:, k]) * w, nan=1e6, posinf=1e6, neginf=-1e6).clamp(-1e6, 1e6)
 
         def rate(y, u):
-            return self.terms.evaluate_torch(torch.cat([y, u], dim=-1)) @ c
+            return self.terms.evaluate_split_torch(y, u) @ c
 
         cost = 0.0
         r = residual(x, 0)
