@@ -185,10 +185,9 @@ def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduc
     plant, records = _records({"current_limit": {"imax": IMAX}})
     small = generate(plant, smallsignal_schedules(0.8), 0.1)
     test = generate(plant, evaluation_schedules(0.04), 0.04)
-    # (few evaluations in every refinement: 49 s against 73 s with the stages' defaults, the same model)
-    fast = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
-            "refine_growing_evaluations": "2,2,2", "refine_polish_evaluations": "2,2", "refine_long_branch_evaluations": 2,
-            "refine_prune_rounds": 1, "distill_max_terms": 2}
+    # (the tests' fast configuration, few evaluations in every refinement: 49 s against 73 s with the
+    # stages' defaults, the same model)
+    from fast_config import FAST
     from pisml_ros.ident import estimators
 
     real, refined = estimators.refine_explicit, set()
@@ -198,7 +197,7 @@ def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduc
         return real(model, train, smallsignal, cfg, *args, **kwargs)
 
     monkeypatch.setattr(estimators, "refine_explicit", recorded)
-    model = make_estimator("pisml", IdentConfig.from_mapping(fast)).fit(records, small).explicit_model_
+    model = make_estimator("pisml", IdentConfig.from_mapping(FAST)).fit(records, small).explicit_model_
     record = model.metadata["limiter"]
     assert record["run"] and record["found"]
     assert record["limit"]["kind"] == "magnitude" and record["limit"]["limit"] == pytest.approx([IMAX], rel=2e-3)

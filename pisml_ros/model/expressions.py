@@ -286,10 +286,7 @@ class TermSet:
         if y.dim() != 2 or not self._torch_plan():
             return self.evaluate_torch(torch.cat([y, u], dim=-1))
         fn, used, n_states = self._split_plan(y.shape[-1])
-        index = self._plan[1]
-        if index.device != y.device:  # training on an accelerator
-            index = index.to(y.device)
-            self._plan = (self._plan[0], index)
+        index = self._plan_index(y.device)
         cols = [self._ones(y), y.T, u.T]
         if fn is not None:
             values = fn(*[y[:, i] if i < n_states else u[:, i - n_states] for i in used])
@@ -379,14 +376,21 @@ class TermSet:
                 self._factors = list(self._symbols) + others  # the base's entries, for :meth:`gradient_torch`
         return self._plan is not False
 
+    def _plan_index(self, device):
+        """The product plan's index on ``device`` (moved there once: training on an accelerator)."""
+        fn, index = self._plan
+        if index.device != device:
+            index = index.to(device)
+            self._plan = (fn, index)
+        return index
+
     def _factor_base(self, z):
         """``[1, signals..., other factor values...]`` of the product plan at ``z``:
         (..., 1 + n_signals + n_other_factors)."""
         import torch
 
-        fn, index = self._plan
-        if index.device != z.device:  # training on an accelerator
-            self._plan = (fn, index.to(z.device))
+        fn = self._plan[0]
+        self._plan_index(z.device)
         cols = [torch.ones(z.shape[:-1] + (1,), dtype=z.dtype, device=z.device), z]
         if fn is not None:
             cols.append(torch.stack([_column(v, z) for v in fn(*z.unbind(-1))], dim=-1))
