@@ -23,7 +23,6 @@ from pisml_ros.signals import INPUT_NAMES, SCORED_STATES, STATE_NAMES
 from fast_config import FAST
 
 
-
 @contextlib.contextmanager
 def torch_threads(n: int):
     """torch's intra-op thread count set to ``n`` inside the block, restored after it."""

@@ -587,8 +587,8 @@ class _ShootingProblem:
             from concurrent.futures import ThreadPoolExecutor
 
             self.terms.values_and_jacobian_torch(torch.cat([self.X[:1, 0], self.U[:1, 0]], dim=-1),
-                                                 self._matrix(theta), self.n)  # compiled once
-            self.terms.evaluate_split_torch(self.X[:1, 0], self.U[:1, 0])
+                                                 self._matrix(theta), self.n)  # compiled once, as is
+            self.terms.evaluate_split_torch(self.X[:1, 0], self.U[:1, 0])  # the state pass's evaluation
             self._pool = ThreadPoolExecutor(parts, "pisml-shoot")
         futures = [self._pool.submit(self._shoot_part, theta, z[part], part, tangents, False, kept) for part in slices]
         extra = beside() if beside else None
