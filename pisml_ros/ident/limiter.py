@@ -192,8 +192,20 @@ class _WindowIntegrals:
         self.theta, self._increments = integral_form(dataset, theta, span=span, stride=stride)
         self.pieces = [(tr.t, np.arange(0, len(tr) - span, stride)) for tr in dataset]
         self.span = span
+        # records on one time grid (the usual case) are integrated as one array: the search calls
+        # this thousands of times, and the loop over records was 40 % of it (stop 86: 2.1 of 5.1 s,
+        # 12 records). The same sums in the same order (cumsum along the samples), so the same values
+        t0 = self.pieces[0][0] if self.pieces else None
+        same = bool(self.pieces) and all(t.shape == t0.shape and np.array_equal(t, t0) for t, _ in self.pieces)
+        self._grid = (np.diff(t0)[None, :, None], self.pieces[0][1]) if same else None
 
     def __call__(self, values: np.ndarray) -> np.ndarray:
+        if self._grid is not None:
+            steps, starts = self._grid
+            stacked = values.reshape(len(self.pieces), steps.shape[1] + 1, values.shape[1])
+            cumulative = np.concatenate([np.zeros((len(self.pieces), 1, values.shape[1])),
+                                         np.cumsum(0.5 * (stacked[:, 1:] + stacked[:, :-1]) * steps, 1)], axis=1)
+            return (cumulative[:, starts + self.span] - cumulative[:, starts]).reshape(-1, values.shape[1])
         out, offset = [], 0
         for t, starts in self.pieces:
             cumulative = cumulative_integral(values[offset:offset + len(t)], t)
