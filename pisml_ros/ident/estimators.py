@@ -424,9 +424,19 @@ class PISML(_Estimator):
                 self.metrics_["refinement_threads"] = float(threads)
             else:
                 # the first start alone on every thread; the second only where the first's family
-                # does not give a model consistent with the records' rest points (IdentConfig.refine_starts)
-                add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
-                    "refinement", 0.7 + 0.28 * 0.5 * fraction, losses=losses)))
+                # does not give a model consistent with the records' rest points (IdentConfig.refine_starts).
+                # The limit search needs the records alone: it runs beside that refinement, the BLAS
+                # pools held at one thread until both end (threadpoolctl's limit is process-wide: the
+                # search's and the fits' own limits, set and restored on two threads, would interleave)
+                with blas_threads(1 if limit_search is not None else None, user_api="blas"):
+                    if limit_search is not None:
+                        limit_search.start()
+                    try:
+                        add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
+                            "refinement", 0.7 + 0.28 * 0.5 * fraction, losses=losses)))
+                    finally:
+                        if limit_search is not None:
+                            limit_search.wait()
                 first_lost = _unpruned_refinement_lost(scores, hold)
                 needed = first_lost or not _refinement_suffices(explicit, candidates, scores, cfg, verdicts, hold,
                                                                 tolerance_floor)
@@ -928,6 +938,7 @@ class _Deferred:
         self._lock = threading.Lock()
         self._done = False
         self._value = self._error = None
+        self._thread = None
         self.seconds = 0.0
 
     def run(self) -> None:
@@ -941,6 +952,18 @@ class _Deferred:
                 self._error = err
             self.seconds = time.monotonic() - started
             self._done = True
+
+    def start(self) -> None:
+        """:meth:`run` on a thread of its own, now (:meth:`wait` and :meth:`value` wait for it)."""
+        import threading
+
+        self._thread = threading.Thread(target=self.run, name="pisml-deferred", daemon=True)
+        self._thread.start()
+
+    def wait(self) -> None:
+        """Until :meth:`start`'s thread has ended (at once where it was not started)."""
+        if self._thread is not None:
+            self._thread.join()
 
     def value(self):
         self.run()

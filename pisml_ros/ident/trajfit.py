@@ -1054,7 +1054,11 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
     # in Jacobi-scaled units (coefficients span many decades); the elimination is invariant to it
     d = np.sqrt(np.clip(np.diag(hessian), 1e-300, None))
     beta = coefficients.ravel()[support].astype(float) * d
-    h_inv = np.linalg.pinv(hessian / np.outer(d, d), rcond=1e-12, hermitian=True)
+    # on one BLAS thread: the eigendecomposition's rounding depends on the threads, and a prune
+    # round's polish then ends a little apart (stop 86: up to 2e-3 in a coefficient); so the same
+    # everywhere, whether the family runs alone (two threads) or beside another (one)
+    with blas_threads(1, user_api="blas"):
+        h_inv = np.linalg.pinv(hessian / np.outer(d, d), rcond=1e-12, hermitian=True)
     order_weights = np.ones(beta.size) if order_weights is None else np.asarray(order_weights, dtype=float)
     groups = None if groups is None else np.asarray(groups)
     alive = np.ones(beta.size, dtype=bool)
