@@ -227,29 +227,26 @@ class TermSet:
             return factors[..., 0] * factors[..., 1]
         return factors.prod(axis=-1)
 
-    def _product_plan(self):
+    def _product_plan(self, whole_terms: bool = False):
         """Every term as a product of factors (signals or non-polynomial sub-expressions such as
-        cos(theta_g - delta)) with positive integer powers, or None when a term is not of that form.
+        cos(theta_g - delta)) with positive integer powers, or None when a term is not of that form;
+        with ``whole_terms`` such a term (a sum, p = vd·id + vq·iq; a quotient) is a factor of its own.
 
         Returns (factor expressions, index matrix n_terms × max_degree into [1, factors...]).
         """
         factors: list = []
         rows = []
         for expr in self.exprs:
-            coeff, rest = sympy.expand(expr).as_coeff_Mul()
-            if coeff != 1 or isinstance(rest, sympy.Add):
-                # a product with an affine factor, such as (Pf - 0.5)*il_d, as it is written: the
-                # factor's derivatives are constants like a signal's
-                coeff, rest = expr.as_coeff_Mul()
-                if coeff != 1 or isinstance(rest, sympy.Add):
+            powers = _factor_powers(expr)
+            if powers is None:
+                if not whole_terms:
                     return None
+                powers = [(expr, 1)]
             row = []
-            for base, power in (rest.as_powers_dict().items() if rest != 1 else []):
-                if not (power.is_Integer and 0 < int(power) <= 4):
-                    return None
+            for base, power in powers:
                 if base not in factors:
                     factors.append(base)
-                row += [factors.index(base) + 1] * int(power)
+                row += [factors.index(base) + 1] * power
             rows.append(row)
         width = max((len(r) for r in rows), default=0) or 1
         return factors, np.array([r + [0] * (width - len(r)) for r in rows], dtype=np.int64)
@@ -283,25 +280,52 @@ class TermSet:
         """
         import torch
 
-        if y.dim() != 2 or not self._torch_plan():
+        if y.dim() != 2:
             return self.evaluate_torch(torch.cat([y, u], dim=-1))
-        fn, used, n_states = self._split_plan(y.shape[-1])
-        index = self._plan_index(y.device)
+        fn, used, n_states, index, affine = self._split_plan(y.shape[-1], y.device)
         cols = [self._ones(y), y.T, u.T]
         if fn is not None:
-            values = fn(*[y[:, i] if i < n_states else u[:, i - n_states] for i in used])
+            values = fn(*[y[:, i] if i < n_states else u[:, i - n_states] for i in used],
+                        *(() if affine is None else _affine_rows(affine, y, u, n_states)))
             cols.append(torch.stack([_column(v, y) for v in values]))
         base = torch.cat(cols)
         return torch.index_select(base, 0, index.view(-1)).view(index.shape + (y.shape[0],)).prod(dim=1).T
 
-    def _split_plan(self, n_states: int):
+    def _split_plan(self, n_states: int, device):
         """:meth:`evaluate_split_torch`'s function of the other factors over the signals they use,
-        and those signals' positions (compiled once per state count)."""
+        those signals' positions and the plan's index on ``device`` (compiled once per state count).
+
+        Its plan takes a term that is not a product of factors as a factor of its own
+        (:meth:`_product_plan`'s ``whole_terms``), computed by the generated function as the term
+        itself was, without a generated function's column per term for every term where one of them
+        is a sum (the same values, to the bit but where that function's common subexpressions group
+        a product of three factors otherwise). That call was a third of the saturation plant's
+        limiter family, whose models keep p and q as sums (measured, stop 87: `bench/fit_time.py
+        --plant saturation --seed 0 --noise 40` under py-spy, 35 % of the family's samples).
+
+        The affine combinations of three or more signals in the other factors (a limiter's
+        reference ℓ, :mod:`pisml_ros.ident.limiter`: ~10 signals, and again inside |ℓ|) come from
+        one matrix product instead of an operation per signal (:func:`_affine_parts`). Forward
+        values only: the training's autograd keeps :meth:`evaluate_torch` as it is.
+        """
+        import torch
+
         if self._split is None or self._split[2] != n_states:
-            others = self._plan_layout()[0]
-            used = sorted({self._symbols.index(s) for f in others for s in f.free_symbols})
-            fn = _lambdify_torch([self._symbols[i] for i in used], others) if others else None
-            self._split = (fn, used, n_states)
+            others, index = self._plan_layout(whole_terms=True)
+            parts = _affine_parts(others)
+            names = [sympy.Dummy(f"affine{k}") for k in range(len(parts))]
+            others = [f.xreplace(dict(zip(parts, names))) for f in others]
+            used = sorted({self._symbols.index(s) for f in others for s in f.free_symbols if s in self._symbols})
+            fn = _lambdify_torch([self._symbols[i] for i in used] + names, others) if others else None
+            affine = None
+            if parts:  # (rows: the parts; columns: 1, then the signals)
+                table = [[float(p.coeff(s)) if s in p.free_symbols else 0.0 for s in self._symbols] for p in parts]
+                offset = [float(p.as_coeff_Add()[0]) for p in parts]
+                affine = torch.tensor([[b, *row] for b, row in zip(offset, table)], dtype=torch.float64)
+            self._split = (fn, used, n_states, torch.as_tensor(index), affine)
+        if self._split[3].device != device:  # (moved once: training on an accelerator)
+            self._split = (*self._split[:3], self._split[3].to(device),
+                           None if self._split[4] is None else self._split[4].to(device))
         return self._split
 
     def _ones(self, y):
@@ -343,13 +367,13 @@ class TermSet:
             self._derivative_exprs = [[sympy.diff(e, s) for s in self._symbols] for e in self.exprs]
         return self._derivative_exprs
 
-    def _plan_layout(self):
+    def _plan_layout(self, whole_terms: bool = False):
         """The product plan over the base ``[1, every signal, the other factors]``: (the factors that
         are not plain signals, the index matrix n_terms × max_degree into the base), or None when
-        the terms are not all products of factors. The signals go into the base as one block, not a
+        the terms are not all products of factors (``whole_terms``: :meth:`_product_plan`'s). The signals go into the base as one block, not a
         generated function's column each (the refinement's state pass and the free runs evaluate
         the terms at every RK4 stage on small batches, where each operation launched counts)."""
-        plan = self._product_plan()
+        plan = self._product_plan(whole_terms)
         if plan is None:
             return None
         factors, index = plan
@@ -445,7 +469,12 @@ class TermSet:
             jac = torch.mm(grad[..., :n_states].transpose(1, 2).reshape(-1, len(self)), coefficients)
             return values, jac.view(-1, n_states, n_out).transpose(1, 2)
         term_of, signal_of, fn, constant = plan
-        values = self.evaluate_torch(z)
+        # the state pass's own values (evaluate_split_torch) where its plan differs: a term that is not
+        # a product of factors, or affine sums (the same to rounding, and quicker)
+        if self._torch_plan() and self._split_plan(n_states, z.device)[4] is None:
+            values = self.evaluate_torch(z)
+        else:
+            values = self.evaluate_split_torch(z[:, :n_states], z[:, n_states:]).contiguous()
         n_entries = term_of.numel()
         jac = (coefficients.T @ constant.to(coefficients.dtype)).expand(z.shape[0], n_out, n_states)
         if n_entries:
@@ -556,6 +585,47 @@ def _column(value, z):
     if torch.is_tensor(value):
         return value
     return torch.full(z.shape[:-1], float(value), dtype=z.dtype, device=z.device)
+
+
+def _affine_parts(factors) -> list:
+    """The sums in ``factors`` (sympy expressions) that are affine in three or more signals, each
+    once, outermost first: c0 + c1·s1 + c2·s2 + ... (TermSet._split_plan computes them as one
+    matrix product)."""
+    parts: list = []
+    for factor in factors:
+        for node in sympy.preorder_traversal(factor):
+            if isinstance(node, sympy.Add) and node not in parts and len(node.free_symbols) >= 3 and all(
+                    arg.is_number or arg.is_Symbol or (isinstance(arg, sympy.Mul) and len(arg.args) == 2
+                                                       and arg.args[0].is_number and arg.args[1].is_Symbol)
+                    for arg in node.args):
+                parts.append(node)
+    return parts
+
+
+def _affine_rows(affine, y, u, n_states: int):
+    """The values of :func:`_affine_parts`' sums at rows ``y``, ``u``: one row per sum, from the
+    table ``affine`` (sums × [1, signals...])."""
+    import torch
+
+    table = affine.to(y.dtype)
+    rows = torch.addmm(table[:, :1], table[:, 1:1 + n_states], y.T)
+    return torch.addmm(rows, table[:, 1 + n_states:], u.T)
+
+
+def _factor_powers(expr):
+    """``[(factor, power), ...]`` of a term that is a product of factors with positive integer
+    powers up to 4 (:meth:`TermSet._product_plan`), or None."""
+    coeff, rest = sympy.expand(expr).as_coeff_Mul()
+    if coeff != 1 or isinstance(rest, sympy.Add):
+        # a product with an affine factor, such as (Pf - 0.5)*il_d, as it is written: the
+        # factor's derivatives are constants like a signal's
+        coeff, rest = expr.as_coeff_Mul()
+        if coeff != 1 or isinstance(rest, sympy.Add):
+            return None
+    powers = list(rest.as_powers_dict().items()) if rest != 1 else []
+    if not all(power.is_Integer and 0 < int(power) <= 4 for _, power in powers):
+        return None
+    return [(base, int(power)) for base, power in powers]
 
 
 def _runs_on_rows(fn, n_signals: int) -> bool:
