@@ -370,9 +370,10 @@ class TermSet:
     def _plan_layout(self, whole_terms: bool = False):
         """The product plan over the base ``[1, every signal, the other factors]``: (the factors that
         are not plain signals, the index matrix n_terms × max_degree into the base), or None when
-        the terms are not all products of factors (``whole_terms``: :meth:`_product_plan`'s). The signals go into the base as one block, not a
-        generated function's column each (the refinement's state pass and the free runs evaluate
-        the terms at every RK4 stage on small batches, where each operation launched counts)."""
+        the terms are not all products of factors (``whole_terms``: :meth:`_product_plan`'s). The
+        signals go into the base as one block, not a generated function's column each (the
+        refinement's state pass and the free runs evaluate the terms at every RK4 stage on small
+        batches, where each operation launched counts)."""
         plan = self._product_plan(whole_terms)
         if plan is None:
             return None
