@@ -284,8 +284,10 @@ def selection_record(model):
     if not selection:
         return {}
     rescue = model.metadata.get("refinement_rescue")  # noisy data: the second try's trigger (since stop 41)
+    # (since stop 88 not run where the limit's family ran first and gave a model: superseded_by_limit)
     searches = {} if not rescue else {"rescue": {"ran": bool(rescue["run"]), "ratio": finite(rescue["ratio"]),
-                                                 "noise_floor_pct": finite(rescue["noise_floor_pct"])}}
+                                                 "noise_floor_pct": finite(rescue["noise_floor_pct"]),
+                                                 "superseded_by_limit": bool(rescue.get("superseded_by_limit"))}}
     # since stop 55: the limit search (estimators.PISML._limiter_family), where it ran (every fit since
     # stop 56; "family": whether the candidates with its terms were refined, every search before)
     limiter = model.metadata.get("limiter") or {}

@@ -64,7 +64,8 @@ def extra_runs(meta: dict) -> list[str]:
         if not record:
             continue
         ratio = record.get("ratio")
-        ran = "ran" if record.get("run") else "not run"
+        ran = "ran" if record.get("run") else "superseded by the limit" if record.get("superseded_by_limit") \
+            else "not run"
         lines.append(f"{label}: {ran} (before it: {record.get('selected_before')!r}, "
                      f"{'' if ratio is None else f'{ratio:.2f}x the noise floor, '}"
                      f"inconsistent at {record.get('inconsistent_rest_points', 0)} rest points"

@@ -202,6 +202,9 @@ def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduc
     assert record["run"] and record["found"]
     assert record["limit"]["kind"] == "magnitude" and record["limit"]["limit"] == pytest.approx([IMAX], rel=2e-3)
     assert "with limit" in model.metadata["selection"]["chosen"]
+    # the family ran before the unrestricted fallback and gave a model: no refinement without its terms
+    assert model.metadata["refinement_unrestricted"]["superseded_by_limit"]
+    assert not model.metadata["refinement_unrestricted"]["run"]
     # the family's polish holds its models' equilibria to the records' rest states
     # (IdentConfig.limiter_rest_weight); the fit's other families keep refine_rest_weight
     config = IdentConfig()
@@ -217,3 +220,17 @@ def test_pisml_finds_the_current_limit_its_libraries_lack_and_its_model_reproduc
     again = ExplicitModel.from_dict(json.loads(model.to_json()))
     errors = protocol_errors(again, test)
     assert errors["iod"] < 0.5 and errors["ood"] < 2.0
+
+
+def test_the_limits_family_supersedes_the_further_tries_only_where_one_of_its_refined_models_runs_through():
+    from pisml_ros.ident.estimators import _limit_supersedes
+
+    scores = {"re-fit +100 % with limit": 1.0, "refined with limit": 50.0, "pruned +0.1 % with limit": 12.0,
+              "refined with limit from chosen with limit": float("inf")}
+    record = {"run": True, "found": True, "family": True, "added": list(scores)}
+    assert _limit_supersedes(record, scores, hold=40.0)  # a prune round beats holding the first states
+    assert not _limit_supersedes(record, scores, hold=10.0)  # the re-fit is no refinement: it does not count
+    assert not _limit_supersedes({**record, "added": ["refined with limit"]}, scores, hold=40.0)
+    # no limit found, no family, no record
+    assert not _limit_supersedes({"run": True, "found": False, "family": True}, scores, hold=40.0)
+    assert not _limit_supersedes(None, scores, hold=40.0)
