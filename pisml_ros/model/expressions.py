@@ -117,10 +117,25 @@ def _torch_module():
 
         return apply
 
-    return {name: numeric(fn) for name, fn in (
+    def bound(fn, clamp_side):
+        # a limiter term's Min(1, x) / Max(-1, x): clamp takes the plain bound as it is, where
+        # minimum / maximum would need a new constant tensor each call (stop 90: 119 -> 107 us a
+        # rate call of a limit model on 48 rows, the values equal to the bit)
+        def apply(*args):
+            if len(args) == 2:
+                tensors = [torch.is_tensor(a) for a in args]
+                if tensors[0] != tensors[1]:
+                    x, c = (args[0], args[1]) if tensors[0] else (args[1], args[0])
+                    return torch.clamp(x, **{clamp_side: float(c)})
+            return numeric(fn)(*args)
+
+        return apply
+
+    functions = {name: numeric(fn) for name, fn in (
         ("sin", torch.sin), ("cos", torch.cos), ("exp", torch.exp), ("tanh", torch.tanh), ("sqrt", torch.sqrt),
-        ("Abs", torch.abs), ("sign", torch.sign), ("Min", torch.minimum), ("Max", torch.maximum),
-        (_STEP.__name__, _step))}
+        ("Abs", torch.abs), ("sign", torch.sign), (_STEP.__name__, _step))}
+    functions.update(Min=bound(torch.minimum, "max"), Max=bound(torch.maximum, "min"))
+    return functions
 
 
 def _step(x, at_zero=0.5):
