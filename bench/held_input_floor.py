@@ -33,7 +33,6 @@ def true_runs(seed: int, snr: float) -> dict:
     from pisml_ros.analysis.metrics import relative_error
     from pisml_ros.data import Dataset
     from pisml_ros.ident.noise import noise_floor_error, piecewise_constant_inputs
-    from pisml_ros.plant import InverterPlant
     from pisml_ros.plant.scenarios import simulate
 
     plant, train, small, _ = datasets({}, snr, seed=seed, input_noise=True)
