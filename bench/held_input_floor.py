@@ -37,7 +37,7 @@ def true_runs(seed: int, snr: float) -> dict:
 
     plant, train, small, _ = datasets({}, snr, seed=seed, input_noise=True)
     _, clean_train, clean_small, _ = datasets({}, None, seed=seed)
-    starts = [plant.equilibrium(s.ug0, s.theta0) for s in training_schedules(len(list(train)), seed, 0.04)]
+    starts = [plant.equilibrium(s.ug0, s.theta0) for s in training_schedules(len(train), seed, 0.04)]
     starts += [plant.equilibrium(s.ug0, s.theta0) for s in smallsignal_schedules(0.8)]
     noisy = list(train) + list(small)
     clean = list(clean_train) + list(clean_small)
@@ -54,17 +54,14 @@ def true_runs(seed: int, snr: float) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", default="240-247", help="recordings, e.g. 240-247 or 0,3")
+    parser.add_argument("--seeds", default="240-247", help="recordings, e.g. 240-247 or 0-3,7")
     parser.add_argument("--noise", type=float, default=40.0, help="SNR in dB, on the states and the inputs")
     parser.add_argument("--out", default=None, help="JSON file for the figures (default: none)")
     args = parser.parse_args(argv)
-    if "-" in args.seeds:
-        first, last = (int(v) for v in args.seeds.split("-"))
-        seeds = list(range(first, last + 1))
-    else:
-        seeds = [int(v) for v in args.seeds.split(",")]
+    from setting_sweep import parse_seeds
+
     rows = []
-    for seed in seeds:
+    for seed in parse_seeds(args.seeds):
         row = true_runs(seed, args.noise)
         rows.append(row)
         print(f"seed {seed}: noise floor {row['noise_floor_pct']:.3f} %; the true plant against the noisy records "
