@@ -28,7 +28,7 @@ sys.path[:0] = [str(BENCH), str(BENCH.parent)]
 def true_runs(seed: int, snr: float) -> dict:
     """For one recording: the true plant's training error (%) on its noisy scoring records with
     exact, held and measured inputs, against the noisy and the clean records, and the noise floor."""
-    from bench import datasets, smallsignal_schedules, training_schedules
+    from bench import datasets
 
     from pisml_ros.analysis.metrics import relative_error
     from pisml_ros.data import Dataset
@@ -37,8 +37,8 @@ def true_runs(seed: int, snr: float) -> dict:
 
     plant, train, small, _ = datasets({}, snr, seed=seed, input_noise=True)
     _, clean_train, clean_small, _ = datasets({}, None, seed=seed)
-    starts = [plant.equilibrium(s.ug0, s.theta0) for s in training_schedules(len(train), seed, 0.04)]
-    starts += [plant.equilibrium(s.ug0, s.theta0) for s in smallsignal_schedules(0.8)]
+    # each record started at the plant's rest for its schedule (the generator keeps the schedules)
+    starts = [plant.equilibrium(s["ug0"], s["theta0"]) for s in train.metadata["schedules"] + small.metadata["schedules"]]
     noisy = list(train) + list(small)
     clean = list(clean_train) + list(clean_small)
     held = list(piecewise_constant_inputs(train)[0]) + list(piecewise_constant_inputs(small)[0])
