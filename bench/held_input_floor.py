@@ -38,7 +38,8 @@ def true_runs(seed: int, snr: float) -> dict:
     plant, train, small, _ = datasets({}, snr, seed=seed, input_noise=True)
     _, clean_train, clean_small, _ = datasets({}, None, seed=seed)
     # each record started at the plant's rest for its schedule (the generator keeps the schedules)
-    starts = [plant.equilibrium(s["ug0"], s["theta0"]) for s in train.metadata["schedules"] + small.metadata["schedules"]]
+    schedules = train.metadata["schedules"] + small.metadata["schedules"]
+    starts = [plant.equilibrium(s["ug0"], s["theta0"]) for s in schedules]
     noisy = list(train) + list(small)
     clean = list(clean_train) + list(clean_small)
     held = list(piecewise_constant_inputs(train)[0]) + list(piecewise_constant_inputs(small)[0])
@@ -67,7 +68,8 @@ def main(argv=None) -> int:
         print(f"seed {seed}: noise floor {row['noise_floor_pct']:.3f} %; the true plant against the noisy records "
               + ", ".join(f"{k} inputs {row[k]['against_noisy_pct']:.3f} %" for k in ("exact", "held", "measured"))
               + "; against the clean records "
-              + ", ".join(f"{k} {row[k]['against_clean_pct']:.3f} %" for k in ("exact", "held", "measured")), flush=True)
+              + ", ".join(f"{k} {row[k]['against_clean_pct']:.3f} %" for k in ("exact", "held", "measured")),
+              flush=True)
     if args.out:
         Path(args.out).write_text(json.dumps({"noise_db": args.noise, "rows": rows}, indent=1))
     return 0
