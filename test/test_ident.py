@@ -524,6 +524,101 @@ def test_noisy_measured_inputs_are_held_at_their_means_where_they_are_constant(t
     assert np.all((swung.trajectories[0].u - true).std(axis=0) < 1.25 * (measured - true).std(axis=0))
 
 
+def test_held_levels_are_pooled_where_a_record_returns_and_where_every_record_starts():
+    # the 50 samples before a small-signal step hold its level to sigma/7; the records that stay at
+    # that operating point hold it to sigma/22: pooled, the step's records take the common level
+    from pisml_ros.ident.noise import piecewise_constant_inputs
+
+    rng = np.random.default_rng(3)
+    sigma = 0.008
+
+    def dataset(levels_per_record):
+        records = []
+        for k, levels in enumerate(levels_per_record):
+            u_true = np.concatenate([np.full(n, level) for level, n in levels])
+            t = np.arange(len(u_true)) * 1e-4
+            measured = np.column_stack([u_true + sigma * rng.standard_normal(len(t)), np.zeros(len(t))])
+            records.append((Trajectory(k, t, np.zeros((len(t), 1)), measured), u_true))
+        return Dataset(("x",), ("ug", "theta_g"), [r for r, _ in records]), [u for _, u in records]
+
+    small, truth = dataset([[(0.8, 50), (0.81, 950)], [(0.8, 50), (0.79, 950)], [(0.8, 1000)], [(0.8, 1000)]])
+    held, report = piecewise_constant_inputs(small, sigma=[sigma, 0.0])
+    common = held.trajectories[3].u[0, 0]
+    assert all(tr.u[0, 0] == common for tr in held)
+    at_common = np.concatenate([tr.u[:, 0] == common for tr in held])
+    # one level over the ~2100 samples there (a step of ~1 sigma is found within a few samples)
+    assert abs(at_common.sum() - 2100) <= 12
+    assert common == pytest.approx(np.concatenate([tr.u[:, 0] for tr in small])[at_common].mean())
+    assert held.trajectories[0].u[60, 0] != common and abs(held.trajectories[0].u[60, 0] - 0.81) < 0.001
+    assert report["ug"]["pooled"] == 4 and report["theta_g"]["pooled"] == 0
+    assert abs(common - 0.8) < 3 * sigma / np.sqrt(2100)
+    unpooled, _ = piecewise_constant_inputs(small, sigma=[sigma, 0.0], pool_threshold=0.0)
+    alone = unpooled.trajectories[0].u[:, 0]
+    assert alone[0] != common and alone[0] == pytest.approx(small.trajectories[0].u[alone == alone[0], 0].mean())
+    # a sag and its recovery share a level; records that start at different levels are not pooled
+    # across, even where two of their levels lie within the test's reach of each other
+    sags, truth = dataset([[(1.0, 150), (0.9, 150), (1.0, 30)], [(1.002, 200), (0.95, 130)]])
+    held, report = piecewise_constant_inputs(sags, sigma=[sigma, 0.0])
+    first = held.trajectories[0].u[:, 0]
+    assert first[0] == first[-1] and abs(np.sum(first == first[0]) - 180) <= 12
+    assert held.trajectories[1].u[0, 0] != first[0] and np.sum(held.trajectories[1].u[:, 0] == first[0]) == 0
+    assert report["ug"]["pooled"] == 2
+
+
+def test_small_signal_residuals_profile_out_the_held_levels_errors():
+    # the response is linear in the step: the profiled levels recover a held level's error from
+    # the deviations, within what their prior allows, and the projected Jacobian's gradient is the
+    # profiled cost's
+    import torch
+
+    from pisml_ros.ident.trajfit import _profile_level_errors, _project_levels, held_level_basis, \
+        held_level_counts, held_level_variance
+
+    torch.set_default_dtype(torch.float64)
+    u = np.concatenate([np.full(50, 0.8), np.full(150, 0.81)])[:, None]
+    samples = np.arange(49, 200, 5)
+    counts = held_level_counts([Trajectory(0, np.arange(200.0), np.zeros((200, 1)), u)], np.array([0.01]))
+    basis, precision = held_level_basis(u, np.array([0.01]), samples, counts)
+    assert basis.shape == (len(samples), 1, 2)
+    assert np.all(basis[samples >= 50, 0, 0] == -1) and np.all(basis[samples >= 50, 0, 1] == 1)
+    np.testing.assert_allclose(precision, [np.sqrt(50) / 0.01, np.sqrt(150) / 0.01])
+    assert held_level_variance(u, np.array([0.01]), counts) == pytest.approx([0.01 ** 2 / 50])
+    ad = torch.tensor([[0.9, 0.05], [-0.05, 0.85]])
+    bd = torch.tensor([[0.0], [0.3]])
+    du_true = torch.tensor(u[samples] - 0.8)
+    held_du = du_true - 0.002 * torch.tensor(basis[:, :, 0])  # the first level 2e-3 too high
+    y, dx = torch.zeros(2), [torch.zeros(2)]
+    for k in range(len(samples) - 1):
+        y = ad @ y + bd @ du_true[k]
+        dx.append(y)
+    dx = torch.stack(dx)
+    w = torch.tensor([1e3, 1e3])
+    levels, du, responses = _profile_level_errors(ad[None], bd[None], dx[None], held_du[None], w[None],
+                                                  torch.tensor(basis)[None], torch.tensor(precision)[None])
+    # the deviations see the step, the two levels' difference: they share it as their priors weigh them
+    # (variances 1/50 : 1/150)
+    first, second = (float(v) for v in levels[0])
+    assert first - second == pytest.approx(0.002, rel=0.02) and first / -second == pytest.approx(3.0, rel=0.02)
+    np.testing.assert_allclose(du[0].numpy(), du_true.numpy(), atol=2e-4)
+    # variable projection: J_effᵀr is the profiled cost's gradient in a coefficient moving bd
+    def cost_and_jacobian(scale):
+        b = bd * scale
+        lv, du_eff, resp = _profile_level_errors(ad[None], b[None], dx[None], held_du[None], w[None],
+                                                 torch.tensor(basis)[None], torch.tensor(precision)[None])
+        y, preds, slope, slopes = torch.zeros(2), [torch.zeros(2)], torch.zeros(2), [torch.zeros(2)]
+        for k in range(len(samples) - 1):
+            y, slope = ad @ y + b @ du_eff[0, k], ad @ slope + bd @ du_eff[0, k]
+            preds.append(y)
+            slopes.append(slope)
+        res = ((torch.stack(preds) - dx) * w).reshape(-1)
+        jac = (torch.stack(slopes) * w).reshape(-1, 1)
+        res, jac = _project_levels((res, jac), (lv, resp, torch.tensor(precision)[None]), 0, w, 1.0, 2)
+        return 0.5 * float(res @ res), float(jac.T @ res)
+
+    (up, _), (down, _), (_, gradient) = cost_and_jacobian(1.001), cost_and_jacobian(0.999), cost_and_jacobian(1.0)
+    assert gradient == pytest.approx((up - down) / 0.002, rel=1e-3)
+
+
 def test_both_refinement_starts_run_where_torch_has_a_second_thread():
     from pisml_ros.ident.estimators import _both_starts
 

@@ -430,6 +430,150 @@ def _rk4_tangent_map(a1, a2, a3, a4, h, forced: bool = True):
     ], dim=2)
 
 
+def held_input_sigma(dataset: Dataset) -> np.ndarray | None:
+    """The noise standard deviation of each input that :func:`~.noise.piecewise_constant_inputs`
+    held at its stretch means in ``dataset`` (its metadata's ``inputs_denoised``; 0 for an input
+    taken as given), or None where none was held."""
+    denoised = dataset.metadata.get("inputs_denoised") if dataset is not None else None
+    if not denoised:
+        return None
+    sigma = np.array([float(denoised.get(name, 0.0)) for name in dataset.input_names])
+    return sigma if np.any(sigma > 0) else None
+
+
+def held_level_counts(records, sigma: np.ndarray) -> list:
+    """For each input: how many samples of ``records`` sit at each of its values. A held level's
+    count is the samples its mean was taken over, pooled stretches' together
+    (:func:`~.noise.piecewise_constant_inputs` gives them one common value); empty for an input
+    taken as exact (``sigma`` 0)."""
+    out = []
+    for j, s in enumerate(sigma):
+        if not s > 0:
+            out.append({})
+            continue
+        values, counts = np.unique(np.concatenate([tr.u[:, j] for tr in records]), return_counts=True)
+        out.append(dict(zip(values.tolist(), counts.tolist())))
+    return out
+
+
+def held_level_basis(u: np.ndarray, sigma: np.ndarray, samples: np.ndarray, counts: list, min_samples: int = 8):
+    """How the errors of a record's held input levels enter its small-signal deviations.
+
+    A held level is the mean of its noisy samples, off by ε ~ N(0, σ²/n) (n from ``counts``,
+    :func:`held_level_counts`). The small-signal residuals use Δu = u(t) − u(0), so a stretch's
+    error moves Δu by ε where t is in it, and the first stretch's by −ε_0 where t is not. At 40 dB
+    the 50 samples before a 0.01 p.u. step of ug hold it to ~1e-3 p.u., ~10 % of the step.
+
+    Parameters
+    ----------
+    u : ndarray, shape (n_samples, n_inputs)
+        The record's inputs, held.
+    sigma : ndarray, shape (n_inputs,)
+        Noise of each input (0: taken as exact, no level error).
+    samples : ndarray of int
+        The samples the small-signal residuals use.
+    counts : list of dict
+        :func:`held_level_counts` of the records the levels were held over.
+
+    Returns
+    -------
+    basis : ndarray, shape (len(samples), n_inputs, n_levels)
+        ∂Δu/∂ε for each held stretch's level error.
+    precision : ndarray, shape (n_levels,)
+        1 / the prior standard deviation of each, √n / σ.
+    """
+    columns, precision = [], []
+    for j in np.flatnonzero(sigma > 0):
+        edges = np.concatenate([[0], np.flatnonzero(np.diff(u[:, j]) != 0) + 1, [len(u)]])
+        held = [counts[j].get(float(u[a, j]), 1) >= min_samples for a in edges[:-1]]
+        if not held[0]:
+            continue  # the reference sample is not on a held stretch: its error is not a level's
+        for index, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+            if not held[index]:
+                continue  # left as measured (a ramp, an oscillation): no level to be off
+            column = np.zeros((len(samples), len(sigma)))
+            inside = (samples >= a) & (samples < b)
+            column[:, j] = -(~inside).astype(float) if index == 0 else inside
+            columns.append(column)
+            precision.append(np.sqrt(counts[j][float(u[a, j])]) / sigma[j])
+    if not columns:
+        return np.zeros((len(samples), len(sigma), 0)), np.zeros(0)
+    return np.stack(columns, axis=-1).astype(float), np.array(precision)
+
+
+def held_level_variance(u: np.ndarray, sigma: np.ndarray, counts: list) -> np.ndarray:
+    """The variance of each held input's level at a record's start, σ²/n (n from ``counts``,
+    :func:`held_level_counts`; σ² for an input as measured there)."""
+    variance = np.zeros(len(sigma))
+    for j in np.flatnonzero(sigma > 0):
+        variance[j] = sigma[j] ** 2 / counts[j].get(float(u[0, j]), 1)
+    return variance
+
+
+def _stack_offsets(offsets: list, length: int, n_inputs: int):
+    """The level-error bases and precisions of records stepping together, padded to the most levels
+    (a padded level has no basis and unit precision: it stays at 0)."""
+    import torch
+
+    size = max(o[1].numel() for o in offsets if o is not None)
+    basis = torch.zeros((len(offsets), length, n_inputs, size))
+    precision = torch.ones((len(offsets), size))
+    for r, o in enumerate(offsets):
+        if o is not None:
+            basis[r, :, :, :o[1].numel()] = o[0]
+            precision[r, :o[1].numel()] = o[1]
+    return basis, precision
+
+
+def _profile_level_errors(ad, bd, dx, du, w, basis, precision):
+    """The held levels' errors that best explain each small-signal record, given the model's
+    discretisation (closed form: the response is linear in Δu), and Δu corrected by them.
+
+    ``ad`` (R, n, n), ``bd`` (R, n, m), ``dx`` (R, S, n), ``du`` (R, S, m), ``w`` (R, n) the
+    residual weights, ``basis`` (R, S, m, E), ``precision`` (R, E). Returns the errors (R, E), the
+    corrected Δu (R, S, m) and the responses to the levels' unit errors (R, S, n, E).
+    """
+    import torch
+
+    drive = torch.cat([du[..., None], basis], dim=-1)  # (R, S, m, 1 + E)
+    y = torch.zeros((dx.shape[0], dx.shape[2], drive.shape[-1]), dtype=dx.dtype)
+    out = [y]
+    for k in range(dx.shape[1] - 1):
+        y = ad @ y + bd @ drive[:, k]
+        out.append(y)
+    out = torch.stack(out, 1)  # (R, S, n, 1 + E)
+    responses = out[..., 1:]
+    weighted = responses * w[:, None, :, None]
+    normal = torch.einsum("rsne,rsnf->ref", weighted, weighted) + torch.diag_embed(precision ** 2)
+    rhs = torch.einsum("rsne,rsn->re", weighted, (out[..., 0] - dx) * w[:, None, :])
+    levels = torch.zeros_like(precision)
+    try:
+        if bool(torch.isfinite(normal).all()) and bool(torch.isfinite(rhs).all()):
+            levels = -torch.linalg.solve(normal, rhs[..., None])[..., 0]
+    except torch.linalg.LinAlgError:
+        pass  # a trial step that blew the response up: the levels stay as held (its cost is huge anyway)
+    return levels, du + torch.einsum("rsme,re->rsm", basis, levels), responses
+
+
+def _project_levels(record, profiled, slot, scale, unit, size):
+    """One record's small-signal residuals and θ-Jacobian with its level errors profiled out
+    (variable projection): the levels' prior rows appended, the Jacobian projected off the
+    directions the levels take up (J − J_ε (J_εᵀJ_ε)⁻¹ J_εᵀJ)."""
+    import torch
+
+    res, jac = record
+    levels, responses, precision = (v[slot, ..., :size] for v in profiled)
+    j_data = (responses * scale[None, :, None]).reshape(-1, size)  # (S·n, E)
+    prior = unit * precision
+    normal = j_data.T @ j_data + torch.diag(prior ** 2)
+    try:
+        move = torch.linalg.solve(normal, j_data.T @ jac)  # (E, n_c)
+    except torch.linalg.LinAlgError:  # a blown-up response (see _profile_level_errors): not projected
+        move = torch.zeros((size, jac.shape[1]), dtype=jac.dtype)
+    return (torch.cat([res, prior * levels]),
+            torch.cat([jac - j_data @ move, -prior[:, None] * move]))
+
+
 def _finite(blocks: dict) -> bool:
     return all(bool(value.isfinite().all()) for value in blocks.values())
 
@@ -480,6 +624,13 @@ class _ShootingProblem:
         self.res_weight = torch.tensor(fitter.weights) / np.sqrt(fitter.window + 1)
         self.x_unit = torch.tensor(1.0 / fitter.weights)
         self.ss = []
+        # noisy measured inputs held at their stretch means (ident.noise.piecewise_constant_inputs):
+        # their noise per input, for the levels' errors the small-signal residuals profile out
+        held_sigma = held_input_sigma(smallsignal) if smallsignal is not None else None
+        if held_sigma is None:
+            held_sigma = held_input_sigma(train)
+        counts = held_level_counts([*train, *(smallsignal if smallsignal is not None else [])], held_sigma) \
+            if held_sigma is not None else None
         if smallsignal is not None and lambda_jac > 0:
             for tr in smallsignal:
                 k0, x_eq = steady_start_mean(tr)
@@ -490,7 +641,12 @@ class _ShootingProblem:
                 grad = self.terms.gradient(np.concatenate([x_eq, tr.u[0]]))  # (n_terms, n_signals)
                 # the linearisation itself is only good to ~1 % of the deviation for 1 % steps
                 w_ss = 1.0 / np.sqrt((1.0 / fitter.weights) ** 2 + (0.01 * dx.std(axis=0)) ** 2 + 1e-30)
-                self.ss.append((torch.tensor(grad), torch.tensor(dx), torch.tensor(du), torch.tensor(w_ss)))
+                offsets = None
+                if held_sigma is not None:
+                    basis, precision = held_level_basis(tr.u, held_sigma, np.arange(k0 - 1, len(tr), ss_stride), counts)
+                    if precision.size:
+                        offsets = (torch.tensor(basis), torch.tensor(precision))
+                self.ss.append((torch.tensor(grad), torch.tensor(dx), torch.tensor(du), torch.tensor(w_ss), offsets))
         self.ss_dt = fitter.dt * ss_stride
         # stability prior: state-gradients of the terms at each anchoring operating point (the
         # records of one point share their rest state: the mean of their steady starts)
@@ -506,12 +662,13 @@ class _ShootingProblem:
             for tr in anchors:
                 length, rest = steady_start_mean(tr)
                 if rest is not None:
-                    rests.setdefault(tuple(np.round(tr.u[0], 9)), []).append((length, rest))
+                    rests.setdefault(tuple(np.round(tr.u[0], 9)), []).append((length, rest, tr.u))
             noise = 1.0 / np.asarray(fitter.weights, dtype=float)
             for u0, group in rests.items():
-                samples = sum(length for length, _ in group)
-                point = np.concatenate([np.mean([r for _, r in group], axis=0), u0])
-                grad = self.terms.gradient(point)[:, :n]
+                samples = sum(length for length, _, _ in group)
+                point = np.concatenate([np.mean([r for _, r, _ in group], axis=0), u0])
+                full_grad = self.terms.gradient(point)
+                grad = full_grad[:, :n]
                 if lambda_stab > 0:
                     self.rest_gradients.append(grad)
                 if lambda_eq > 0:
@@ -522,7 +679,14 @@ class _ShootingProblem:
                         # f at a measured rest state is zero up to the noise left in its mean, carried
                         # through the start model's Jacobian: the prior's unit for each equation
                         jac = coef0.T @ grad
-                        sigma = np.sqrt((jac ** 2) @ (noise ** 2) / samples)
+                        variance = (jac ** 2) @ (noise ** 2) / samples
+                        if held_sigma is not None:
+                            # a held input's level is off by its noise over its stretch, and f with it
+                            # (stop 91, recording 242: unweighed, this prior alone sent the refined
+                            # model's free run to 148 % with held ug in the small-signal records)
+                            variance = variance + (coef0.T @ full_grad[:, n:]) ** 2 @ held_level_variance(
+                                group[0][2], held_sigma, counts)
+                        sigma = np.sqrt(variance)
                         sigma = np.maximum(sigma, 1e-9 * (1.0 + np.abs(jac).max()))
                     values = self.terms.evaluate(point[None])[0]
                     # f is linear in θ: the prior's θ-derivatives are fixed, built once here
@@ -777,11 +941,17 @@ class _ShootingProblem:
         c = self._matrix(theta)
         n = self.n
         res = []
-        for grad, dx, du, w_ss in self.ss:
+        for grad, dx, du, w_ss, offsets in self.ss:
             jac = c.T @ grad  # (n_states, n_signals)
             m = torch.cat([jac, torch.zeros((du.shape[1], n + du.shape[1]), dtype=c.dtype)], dim=0)
             disc = torch.linalg.matrix_exp(m * self.ss_dt)
             ad, bd = disc[:n, :n], disc[:n, n:]
+            unit = self.sqrt_lj / np.sqrt(dx.shape[0])
+            if offsets is not None:
+                levels, du, _ = _profile_level_errors(ad[None], bd[None], dx[None], du[None], w_ss[None],
+                                                      offsets[0][None], offsets[1][None])
+                du = du[0]
+                res.append(unit * offsets[1] * levels[0])  # their prior
             # the record is in steady state before the step: a start at the first (noisy) deviation
             # sample would ring the fast modes through the whole record
             y = torch.zeros_like(dx[0])
@@ -789,7 +959,7 @@ class _ShootingProblem:
             for k in range(dx.shape[0] - 1):
                 y = ad @ y + bd @ du[k]
                 preds.append(y)
-            res.append(self.sqrt_lj * ((torch.stack(preds) - dx) * w_ss).reshape(-1) / np.sqrt(dx.shape[0]))
+            res.append(unit * ((torch.stack(preds) - dx) * w_ss).reshape(-1))
         return torch.cat(res) if res else torch.zeros(0)
 
     def _stability_residuals(self, theta):
@@ -863,6 +1033,11 @@ class _ShootingProblem:
             disc, d_disc = _expm_row_derivatives(m, self.row_of, grad[:, self.term_of] * self.scale_t[None, :, None],
                                                  self.ss_dt)
             ad, bd = disc[:, :n, :n], disc[:, :n, n:]
+            profiled = None
+            if any(self.ss[i][4] is not None for i in members):
+                basis, precision = _stack_offsets([self.ss[i][4] for i in members], length, du.shape[2])
+                levels, du, responses = _profile_level_errors(ad, bd, dx, du, w_ss, basis, precision)
+                profiled = (levels, responses, precision)
             # the response itself is the same for every coefficient: first all of it
             y = torch.zeros((n_rec, n), dtype=c.dtype)
             preds = [y]
@@ -882,6 +1057,9 @@ class _ShootingProblem:
             jac = tangents.mul_(scale[None, :, :, None])
             for slot, i in enumerate(members):
                 out[i] = (res[slot].reshape(-1), jac[:, slot].reshape(-1, n_c))
+                if profiled is not None and self.ss[i][4] is not None:
+                    out[i] = _project_levels(out[i], profiled, slot, scale[slot], self.sqrt_lj / np.sqrt(length),
+                                             self.ss[i][4][1].numel())
         return torch.cat([r for r, _ in out]), torch.cat([j for _, j in out])
 
     def cost(self, theta, z) -> float:
