@@ -681,9 +681,10 @@ class _ShootingProblem:
                         jac = coef0.T @ grad
                         variance = (jac ** 2) @ (noise ** 2) / samples
                         if held_sigma is not None:
-                            # a held input's level is off by its noise over its stretch, and f with it
-                            # (stop 91, recording 242: unweighed, this prior alone sent the refined
-                            # model's free run to 148 % with held ug in the small-signal records)
+                            # a held input's level is off by its noise over its stretch(es), and f
+                            # with it (stop 91, recording 242, held ug in the small-signal records:
+                            # with this prior off the refinement fit the training records, with it
+                            # on in the state noise's unit alone it failed; README, stop 91)
                             variance = variance + (coef0.T @ full_grad[:, n:]) ** 2 @ held_level_variance(
                                 group[0][2], held_sigma, counts)
                         sigma = np.sqrt(variance)
@@ -946,12 +947,11 @@ class _ShootingProblem:
             m = torch.cat([jac, torch.zeros((du.shape[1], n + du.shape[1]), dtype=c.dtype)], dim=0)
             disc = torch.linalg.matrix_exp(m * self.ss_dt)
             ad, bd = disc[:n, :n], disc[:n, n:]
-            unit = self.sqrt_lj / np.sqrt(dx.shape[0])
             if offsets is not None:
                 levels, du, _ = _profile_level_errors(ad[None], bd[None], dx[None], du[None], w_ss[None],
                                                       offsets[0][None], offsets[1][None])
                 du = du[0]
-                res.append(unit * offsets[1] * levels[0])  # their prior
+                res.append(self.sqrt_lj / np.sqrt(dx.shape[0]) * offsets[1] * levels[0])  # their prior
             # the record is in steady state before the step: a start at the first (noisy) deviation
             # sample would ring the fast modes through the whole record
             y = torch.zeros_like(dx[0])
@@ -959,7 +959,7 @@ class _ShootingProblem:
             for k in range(dx.shape[0] - 1):
                 y = ad @ y + bd @ du[k]
                 preds.append(y)
-            res.append(unit * ((torch.stack(preds) - dx) * w_ss).reshape(-1))
+            res.append(self.sqrt_lj * ((torch.stack(preds) - dx) * w_ss).reshape(-1) / np.sqrt(dx.shape[0]))
         return torch.cat(res) if res else torch.zeros(0)
 
     def _stability_residuals(self, theta):
