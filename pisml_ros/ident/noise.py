@@ -130,14 +130,11 @@ def _pooled_stretches(pieces: list, records: list, starts: list, sigma: float, t
     sigma, threshold : float
         The input's noise; the pooling test's bound in standard errors (0: no pooling).
     """
+    from scipy.cluster.hierarchy import DisjointSet
+
     means = np.array([p.mean() for p in pieces])
     counts = np.array([len(p) for p in pieces], dtype=float)
-    parent = list(range(len(pieces)))
-
-    def root(i):
-        while parent[i] != i:
-            i = parent[i]
-        return i
+    sets = DisjointSet(range(len(pieces)))
 
     def agree(group_a, group_b):
         na, nb = counts[group_a].sum(), counts[group_b].sum()
@@ -145,27 +142,24 @@ def _pooled_stretches(pieces: list, records: list, starts: list, sigma: float, t
         return abs(ma - mb) <= threshold * sigma * np.sqrt(1.0 / na + 1.0 / nb)
 
     def members(i):
-        return [k for k in range(len(pieces)) if root(k) == root(i)]
+        return sorted(sets.subset(i))
 
     if threshold > 0:
         first = [i for i, s in enumerate(starts) if s]
         # across records: the common start level, if every record starts on a held stretch there
         if len(first) == len(set(records)) > 1 and all(agree([i], [k for k in first if k != i]) for i in first):
             for i in first[1:]:
-                parent[root(i)] = root(first[0])
+                sets.merge(first[0], i)
             for i in range(len(pieces)):
-                if root(i) != root(first[0]) and agree([i], members(first[0])):
-                    parent[root(i)] = root(first[0])
+                if not sets.connected(i, first[0]) and agree([i], members(first[0])):
+                    sets.merge(first[0], i)
         # within each record: in order of the means, each stretch joins the group before it if they agree
         for record in sorted(set(records)):
             order = sorted((i for i in range(len(pieces)) if records[i] == record), key=lambda i: means[i])
             for before, i in zip(order[:-1], order[1:]):
-                if root(before) != root(i) and agree(members(before), members(i)):
-                    parent[root(i)] = root(before)
-    groups: dict = {}
-    for i in range(len(pieces)):
-        groups.setdefault(root(i), []).append(i)
-    return list(groups.values())
+                if not sets.connected(before, i) and agree(members(before), members(i)):
+                    sets.merge(before, i)
+    return [sorted(group) for group in sets.subsets()]
 
 
 def piecewise_constant_inputs(dataset: Dataset, sigma: np.ndarray | None = None, threshold: float = 6.0,
@@ -230,12 +224,12 @@ def piecewise_constant_inputs(dataset: Dataset, sigma: np.ndarray | None = None,
                     held.append((r, a, b))
                     report[name]["replaced"] += 1
                     report[name]["samples"] += n
-        groups = _pooled_stretches([dataset.trajectories[r].u[a:b, j] for r, a, b in held],
-                                   [r for r, _, _ in held], [a == 0 for _, a, _ in held], sigma[j], pool_threshold)
+        pieces = [dataset.trajectories[r].u[a:b, j] for r, a, b in held]
+        groups = _pooled_stretches(pieces, [r for r, _, _ in held], [a == 0 for _, a, _ in held], sigma[j],
+                                   pool_threshold)
         report[name]["pooled"] = sum(len(g) for g in groups if len(g) > 1)
         for group in groups:
-            level = np.mean(np.concatenate([dataset.trajectories[held[i][0]].u[held[i][1]:held[i][2], j]
-                                            for i in group]))
+            level = np.mean(np.concatenate([pieces[i] for i in group]))
             for i in group:
                 r, a, b = held[i]
                 inputs[r][a:b, j] = level
