@@ -212,6 +212,89 @@ def test_shooting_normal_equations_match_autodiff(truth, threads, single):
     problem.close()
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_held_training_levels_errors_are_parameters_with_their_prior(truth, threads):
+    """With the training records' inputs held at their stretch means (noisy measured inputs), each
+    held level's error is a parameter after the coefficients, shared by every window on it, with the
+    prior N(0, σ²/n): the Gauss-Newton blocks match torch's autodiff of the residuals with the held
+    levels moved by them and the prior's rows appended; the profiled Hessian minimises them out."""
+    import torch
+
+    from pisml_ros.data import Dataset
+    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem, held_level_counts, held_window_levels
+
+    model, plant = truth
+    data, start, weights = _perturbed_problem(model, plant, seed=4, duration=0.002, spread=0.01, rng_seed=2)
+    sigma = {"ug": 0.01, "theta_g": 0.02}
+    data = Dataset(data.state_names, data.input_names, list(data), {**data.metadata, "inputs_denoised": sigma})
+    fitter = TrajectoryFitter(model._terms, 13, data.dt, window=4, substeps=2, weights=weights, threads=threads,
+                              held_levels=True)
+    problem = _ShootingProblem(fitter, start, model.coefficients != 0, data, None, lambda_jac=0.0, ss_stride=5)
+    counts = held_level_counts(list(data), np.array([0.01, 0.02]))
+    levels = sorted((j, v) for j in range(2) for v, k in counts[j].items() if k >= 8)
+    assert problem.n_levels == len(levels) >= 3 and problem.n_params == problem.n_c + problem.n_levels
+    n_c = problem.n_c
+    table = problem.level_table  # (windows, samples, inputs, levels): ∂u/∂θ_level
+    theta = torch.tensor(np.concatenate([start.ravel()[problem.idx] / problem.scale,
+                                         np.linspace(-1.0, 1.0, problem.n_levels)]))
+    z = 0.1 * torch.randn((problem.n_windows, 13), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+    def residuals(theta, z):
+        c = problem._matrix(theta)
+        x = problem.X[:, 0] + z * problem.x_unit
+        out = [(x - problem.X[:, 0]) * problem.res_weight]
+        for k in range(problem.window):
+            u = problem.U[:, k] + table[:, k] @ theta[n_c:]
+            for _ in range(problem.substeps):
+                f = lambda y: model._terms.evaluate_torch(torch.cat([y, u], -1)) @ c  # noqa: E731
+                k1 = f(x)
+                k2 = f(x + 0.5 * problem.h * k1)
+                k3 = f(x + 0.5 * problem.h * k2)
+                k4 = f(x + problem.h * k3)
+                x = x + problem.h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            out.append((x - problem.X[:, k + 1]) * problem.res_weight)
+        return torch.stack(out, 1).reshape(problem.n_windows, -1)
+
+    n_win = problem.n_windows
+    jc = torch.func.jacfwd(residuals, argnums=0)(theta, z)
+    jz_all = torch.func.jacfwd(residuals, argnums=1)(theta, z)
+    jz = torch.stack([jz_all[w, :, w, :] for w in range(n_win)])
+    r = residuals(theta, z)
+    assert float(jc[..., n_c:].abs().max()) > 0  # the levels move the states
+    prior = torch.cat([torch.zeros(n_c), torch.ones(problem.n_levels)])
+    blocks = problem.normal_equations(theta, z)
+    expected = {"H": torch.einsum("wrc,wrd->cd", jc, jc) + torch.diag(prior),
+                "g": torch.einsum("wrc,wr->c", jc, r) + prior * theta,
+                "A": jz.transpose(1, 2) @ jz, "E": jz.transpose(1, 2) @ jc, "bz": torch.einsum("wrk,wr->wk", jz, r)}
+    for name, value in expected.items():
+        np.testing.assert_allclose(blocks[name].numpy(), value.numpy(), rtol=1e-9, atol=1e-9 * float(value.abs().max()))
+    assert problem.cost(theta, z) == pytest.approx(0.5 * float((r ** 2).sum() + (theta[n_c:] ** 2).sum()), rel=1e-12)
+    # the profiled Hessian: the start states and the levels minimised out of the dense JᵀJ
+    dense = torch.cat([torch.cat([jc.reshape(-1, jc.shape[-1]), torch.block_diag(*jz)], dim=1),
+                       torch.cat([torch.diag(prior)[n_c:], torch.zeros((problem.n_levels, 13 * n_win))], dim=1)])
+    h = (dense.T @ dense).numpy()
+    schur = h[:n_c, :n_c] - h[:n_c, n_c:] @ np.linalg.solve(h[n_c:, n_c:], h[n_c:, :n_c])
+    expected_h = schur / np.outer(problem.scale, problem.scale)
+    np.testing.assert_allclose(problem.profiled_hessian(blocks), expected_h, rtol=1e-6,
+                               atol=1e-9 * np.abs(expected_h).max())
+    assert problem.coefficients(theta.numpy()).shape == start.shape
+    problem.close()
+    # inputs taken as exact (no inputs_denoised), or the option off: no level parameters
+    exact = Dataset(data.state_names, data.input_names, list(data),
+                    {k: v for k, v in data.metadata.items() if k != "inputs_denoised"})
+    assert _ShootingProblem(fitter, start, model.coefficients != 0, exact, None, 0.0, 5).n_levels == 0
+    fitter.held_levels = False
+    assert _ShootingProblem(fitter, start, model.coefficients != 0, data, None, 0.0, 5).n_levels == 0
+    # held_window_levels: one level per input and value with enough samples (σ/√n), -1 elsewhere
+    u = np.zeros((2, 4, 2))
+    u[0, :, 0] = [1.0, 1.0, 0.5, 1.0]
+    u[1, :, 0] = [0.5, 0.5, 2.0, 0.5]
+    index, unit = held_window_levels(u, np.array([0.1, 0.0]), [{1.0: 100, 0.5: 25, 2.0: 4}, {}])
+    np.testing.assert_allclose(unit, [0.02, 0.01])  # 0.5 and 1.0; 2.0 (4 samples) is no held level
+    np.testing.assert_array_equal(index[..., 0], [[1, 1, 0, 1], [0, 0, -1, 0]])
+    np.testing.assert_array_equal(index[..., 1], -1)
+
+
 def test_a_single_precision_fit_ends_with_float64_normal_equations(truth, monkeypatch):
     """With float32 coefficient tangents the steps come from float32 Jacobians, but the Hessian a fit
     returns (pruning, covariance) is computed again in float64 at its last point; the fit pulls

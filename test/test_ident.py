@@ -565,6 +565,43 @@ def test_held_levels_are_pooled_where_a_record_returns_and_where_every_record_st
     assert report["ug"]["pooled"] == 2
 
 
+def test_shallow_sags_are_found_and_uncertain_steps_take_their_posterior_mean():
+    # a sag of ~1 sigma over 90 of 400 samples: one split sees it diluted (under 5 standard errors),
+    # the inner interval's test at ~9; a step of 1.5 sigma is placed only to a few samples, so the
+    # samples around it take m1 + (m2 - m1) P(step <= k), and a step of 20 sigma stays where it is
+    from pisml_ros.ident.noise import _mean_shift_segments, _soft_edges, piecewise_constant_inputs
+
+    rng = np.random.default_rng(9)
+    sigma = 0.01
+    u_true = np.concatenate([np.full(70, 1.0), np.full(90, 0.99), np.full(240, 1.0)])
+    measured = u_true + sigma * rng.standard_normal(400)
+    assert _mean_shift_segments(measured, sigma, 6.0) == [(0, 400)]
+    spans = _mean_shift_segments(measured, sigma, 6.0, interval_threshold=6.0)
+    assert len(spans) == 3 and abs(spans[1][0] - 70) <= 6 and abs(spans[1][1] - 160) <= 6
+    pure = sigma * rng.standard_normal((20, 400))
+    assert all(len(_mean_shift_segments(row, sigma, 6.0, interval_threshold=6.0)) == 1 for row in pure)
+    # the posterior mean around a small step: monotone between the levels, each sample's expected value
+    step = np.concatenate([np.full(100, 0.8), np.full(100, 0.815)])
+    noisy = step + sigma * rng.standard_normal(200)
+    held = np.concatenate([np.full(100, 0.8), np.full(100, 0.815)])
+    soft = _soft_edges(noisy, held, [(0, 100, 200)], sigma, 25)
+    assert np.all(np.diff(soft) >= 0) and soft[0] == 0.8 and soft[-1] == 0.815
+    assert np.all(soft[:75] == 0.8) and np.all(soft[125:] == 0.815)
+    assert 0 < np.sum((soft > 0.8) & (soft < 0.815)) <= 50
+    big = np.concatenate([np.full(100, 0.8), np.full(100, 1.0)])
+    kept = _soft_edges(big + sigma * rng.standard_normal(200), big, [(0, 100, 200)], sigma, 25)
+    np.testing.assert_array_equal(kept, big)
+    # in piecewise_constant_inputs: the sag found, its edges softened, the levels outside them kept exactly
+    record = Trajectory(0, np.arange(400) * 1e-4, np.zeros((400, 1)), np.column_stack([measured, np.zeros(400)]))
+    data = Dataset(("x",), ("ug", "theta_g"), [record])
+    plain, _ = piecewise_constant_inputs(data, sigma=[sigma, 0.0])
+    assert np.unique(plain.trajectories[0].u[:, 0]).size == 1
+    found, report = piecewise_constant_inputs(data, sigma=[sigma, 0.0], interval_threshold=6.0, edge_width=25)
+    u = found.trajectories[0].u[:, 0]
+    assert report["ug"]["replaced"] == 3 and u[0] == u[-1] and abs(u[115] - 0.99) < 0.003
+    assert np.mean(np.abs(u - u_true)) < np.mean(np.abs(plain.trajectories[0].u[:, 0] - u_true))
+
+
 def test_small_signal_residuals_profile_out_the_held_levels_errors():
     # the response is linear in the step: the profiled levels recover a held level's error from
     # the deviations, within what their prior allows, and the projected Jacobian's gradient is the
@@ -676,6 +713,14 @@ def test_a_fit_on_noisy_inputs_holds_them_and_says_so(train, small):
     assert on.explicit_model_.metadata["identification"]["inputs_denoised"]["training"]["ug"]["replaced"] > 0
     with pytest.raises(ConfigError, match="input_denoise must be auto or off, got 'yes'"):
         IdentConfig.from_mapping({"input_denoise": "yes"})
+    # the steps' options reach the hold (an inner interval's split only adds stretches)
+    steps = make_estimator("mod-sindy", IdentConfig.from_mapping(
+        {"input_interval_threshold": 6.0, "input_edge_width": 25})).fit(noisy_train)
+    found = steps.explicit_model_.metadata["identification"]["inputs_denoised"]["training"]["ug"]
+    assert found["stretches"] >= on.explicit_model_.metadata["identification"]["inputs_denoised"]["training"]["ug"][
+        "stretches"] and found["replaced"] > 0
+    with pytest.raises(ConfigError, match="input_edge_width must be >= 0"):
+        IdentConfig.from_mapping({"input_edge_width": -1})
 
 
 def test_a_noisy_fit_without_small_signal_records_says_what_it_lacks(train):

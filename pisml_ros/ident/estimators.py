@@ -88,7 +88,9 @@ class _Estimator:
             if sigma is None or not np.any(sigma > 0):
                 held[label] = records
                 continue
-            held[label], self.inputs_denoised_[label] = piecewise_constant_inputs(records, sigma=sigma)
+            held[label], self.inputs_denoised_[label] = piecewise_constant_inputs(
+                records, sigma=sigma, interval_threshold=self.config.input_interval_threshold,
+                edge_width=self.config.input_edge_width)
         if self.inputs_denoised_:
             self.metrics_["inputs_denoised"] = 1.0
         return held["training"], held["smallsignal"]
@@ -1445,7 +1447,7 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         substeps_used.add(substeps)
         return TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=window,
                                 substeps=substeps, weights=weights, max_windows=max_windows, threads=threads,
-                                single_precision=single_precision)
+                                single_precision=single_precision, held_levels=cfg.refine_held_levels)
 
     errors = {} if errors is None else errors
     if cfg.refine_growing_windows and (_noisy(train) if growing is None else growing):

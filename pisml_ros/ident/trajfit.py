@@ -190,10 +190,15 @@ class TrajectoryFitter:
         to ~1e-7 instead of ~1e-16. The normal equations at the point the fit ends are computed
         again in float64: the Hessian it returns (:attr:`FitResult.hessian`, which prunes and
         gives the covariance) has a condition number of ~1e10, beyond float32's reach.
+    held_levels : bool
+        Where the training records' inputs were held at their stretch means (noisy measured inputs:
+        their metadata's ``inputs_denoised``), fit each held level's error beside the coefficients
+        (errors in variables, prior N(0, σ²/n); :func:`held_window_levels`).
     """
 
     def __init__(self, terms: TermSet, n_states: int, dt: float, window: int = 50, substeps: int = 2,
-                 weights=None, max_windows: int | None = None, threads: int = 1, single_precision: bool = False):
+                 weights=None, max_windows: int | None = None, threads: int = 1, single_precision: bool = False,
+                 held_levels: bool = False):
         self.terms = terms
         self.n_states = n_states
         self.dt = dt
@@ -203,6 +208,7 @@ class TrajectoryFitter:
         self.max_windows = max_windows
         self.threads = max(1, int(threads))
         self.single_precision = bool(single_precision)
+        self.held_levels = bool(held_levels)
 
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
@@ -289,7 +295,7 @@ class TrajectoryFitter:
     def _solve(self, torch, problem, coef0, max_nfev, on_evaluation, keep_going, fit_starts_first,
                ftol, damping) -> FitResult:
         started = time.monotonic()
-        theta = torch.tensor(coef0.ravel()[problem.idx] / problem.scale)
+        theta = torch.tensor(np.concatenate([coef0.ravel()[problem.idx] / problem.scale, np.zeros(problem.n_levels)]))
         z = torch.zeros((problem.n_windows, self.n_states))
         if fit_starts_first:
             z = problem.fit_starts(theta, z)
@@ -510,6 +516,43 @@ def held_level_variance(u: np.ndarray, sigma: np.ndarray, counts: list) -> np.nd
     return variance
 
 
+def held_window_levels(u: np.ndarray, sigma: np.ndarray, counts: list, min_samples: int = 8):
+    """Which held level each shooting window's input sits on, sample by sample, and each level's
+    standard deviation.
+
+    A held level is the mean of its noisy samples, off by ε ~ N(0, σ²/n) (n from ``counts``,
+    :func:`held_level_counts`); a level is identified by its input and value, so pooled stretches
+    (one common mean) share one error wherever they occur.
+
+    Parameters
+    ----------
+    u : ndarray, shape (n_windows, window + 1, n_inputs)
+        The windows' inputs, held (:func:`~.derivatives.trajectory_windows`).
+    sigma : ndarray, shape (n_inputs,)
+        Noise of each input (0: taken as exact).
+    counts : list of dict
+        :func:`held_level_counts` of the records the levels were held over.
+
+    Returns
+    -------
+    index : ndarray of int, shape (n_windows, window + 1, n_inputs)
+        The level of each sample's input (-1: not a held level, taken as exact).
+    unit : ndarray, shape (n_levels,)
+        σ/√n of each level.
+    """
+    index = np.full(u.shape, -1, dtype=np.int64)
+    unit = []
+    for j in np.flatnonzero(sigma > 0):
+        values, inverse = np.unique(u[..., j], return_inverse=True)
+        inverse = inverse.reshape(u.shape[:-1])
+        for v, value in enumerate(values.tolist()):
+            count = counts[j].get(value, 1)
+            if count >= min_samples:
+                index[..., j][inverse == v] = len(unit)
+                unit.append(sigma[j] / np.sqrt(count))
+    return index, np.array(unit, dtype=float)
+
+
 def _stack_offsets(offsets: list, length: int, n_inputs: int):
     """The level-error bases and precisions of records stepping together, padded to the most levels
     (a padded level has no basis and unit precision: it stays at 0)."""
@@ -631,6 +674,23 @@ class _ShootingProblem:
             held_sigma = held_input_sigma(train)
         counts = held_level_counts([*train, *(smallsignal if smallsignal is not None else [])], held_sigma) \
             if held_sigma is not None else None
+        # the training records' held levels: each level's error is a parameter after the coefficients
+        # (errors in variables, in units of its σ/√n with a unit normal prior), shared by every window
+        # on it; their forcing per window sample and input comes from a one-hot table of the levels
+        self.n_c = self.idx.size
+        self.n_levels = 0
+        train_sigma = held_input_sigma(train)
+        if train_sigma is not None and fitter.held_levels:
+            index, unit = held_window_levels(uw, train_sigma, held_level_counts(
+                [*train, *(smallsignal if smallsignal is not None else [])], train_sigma))
+            if unit.size:
+                self.n_levels = unit.size
+                self.level_index = torch.tensor(np.where(index < 0, unit.size, index))  # "no level": a zero slot
+                self.level_unit = torch.tensor(unit)
+                one_hot = np.zeros((*index.shape, unit.size + 1))
+                np.put_along_axis(one_hot, np.where(index < 0, unit.size, index)[..., None], 1.0, axis=-1)
+                self.level_table = torch.tensor(one_hot[..., :unit.size] * unit)  # ∂u/∂θ_level
+        self.n_params = self.n_c + self.n_levels
         if smallsignal is not None and lambda_jac > 0:
             for tr in smallsignal:
                 k0, x_eq = steady_start_mean(tr)
@@ -704,6 +764,8 @@ class _ShootingProblem:
             rate_rms = np.maximum(rate_rms, 1e-9 * (1.0 + rate_rms.max()))
             self.ridge_unit = np.sqrt(lambda_ridge) * self.scale * (
                 term_rms[self.idx // self.shape[1]] / rate_rms[self.idx % self.shape[1]])
+        # the held levels' prior N(0, 1) in their units: a ridge of unit weight on their entries
+        self.ridge_unit = np.concatenate([self.ridge_unit, np.ones(self.n_levels)])
         self.sqrt_ls = float(np.sqrt(lambda_stab))
         self.sqrt_le = float(np.sqrt(lambda_eq))
         self.stability_margin = float(stability_margin)
@@ -711,13 +773,13 @@ class _ShootingProblem:
 
     def coefficients(self, theta) -> np.ndarray:
         out = np.zeros(int(np.prod(self.shape)))
-        out[self.idx] = np.asarray(theta) * self.scale
+        out[self.idx] = np.asarray(theta)[:self.n_c] * self.scale
         return out.reshape(self.shape)
 
     def _matrix(self, theta):
         torch = self.torch
         flat = torch.zeros(int(np.prod(self.shape)), dtype=theta.dtype)
-        return flat.index_put((self.idx_t,), theta * self.scale_t).reshape(self.shape)
+        return flat.index_put((self.idx_t,), theta[:self.n_c] * self.scale_t).reshape(self.shape)
 
     def _shoot(self, theta, z, tangents: str = "", beside=None, keep: bool = False):
         """Integrate every window from its start; residuals, and the Gauss-Newton blocks when
@@ -753,6 +815,9 @@ class _ShootingProblem:
 
             self.terms.values_and_jacobian_torch(torch.cat([self.X[:1, 0], self.U[:1, 0]], dim=-1),
                                                  self._matrix(theta), self.n)  # compiled once, as is
+            if self.n_levels:  # the held levels' forcing
+                self.terms.input_jacobian_torch(torch.cat([self.X[:1, 0], self.U[:1, 0]], dim=-1), self._matrix(theta),
+                                                self.n)
             self.terms.evaluate_split_torch(self.X[:1, 0], self.U[:1, 0])  # the state pass's evaluation
             self._pool = ThreadPoolExecutor(parts, "pisml-shoot")
         futures = [self._pool.submit(self._shoot_part, theta, z[part], part, tangents, False, kept) for part in slices]
@@ -786,10 +851,13 @@ class _ShootingProblem:
         torch = self.torch
         c = self._matrix(theta)
         X, u_all = self.X[rows], self.U[rows]
+        if self.n_levels:  # the held levels moved by their errors
+            errors = torch.cat([theta[self.n_c:] * self.level_unit, torch.zeros(1, dtype=theta.dtype)])
+            u_all = u_all + errors[self.level_index[rows]]
         if kept is not None:
             states, residuals, points = ([value[rows] for value in values] for values in kept[2:])
             cost = 0.5 * float(torch.stack(residuals).square().sum())
-            return cost, self._tangent_blocks(c, X, u_all, states, residuals, points, "c" in tangents)
+            return cost, self._tangent_blocks(c, X, u_all, states, residuals, points, "c" in tangents, rows)
         h = self.h
         x = X[:, 0] + z * self.x_unit
         w = self.res_weight
@@ -828,13 +896,14 @@ class _ShootingProblem:
             self._kept = (theta.clone(), z.clone(), states, residuals, points)
         if not tangents:
             return cost, None
-        return cost, self._tangent_blocks(c, X, u_all, states, residuals, points, "c" in tangents)
+        return cost, self._tangent_blocks(c, X, u_all, states, residuals, points, "c" in tangents, rows)
 
-    def _tangent_blocks(self, c, X, u_all, states, residuals, points, coefficients: bool):
-        """The Gauss-Newton blocks of one part's windows from its states and RK4 stage points
-        (:meth:`_shoot_part`): "A", "bz" (start states) and, with ``coefficients``, "H", "g", "E"."""
+    def _tangent_blocks(self, c, X, u_all, states, residuals, points, coefficients: bool, rows=slice(None)):
+        """The Gauss-Newton blocks of one part's windows (``rows``) from its states and RK4 stage points
+        (:meth:`_shoot_part`): "A", "bz" (start states) and, with ``coefficients``, "H", "g", "E" (in
+        all parameters: the coefficients, then the held levels' errors)."""
         torch = self.torch
-        n, n_win, n_c = self.n, X.shape[0], self.idx.size
+        n, n_win, n_c = self.n, X.shape[0], self.n_params
         n_stages, n_terms, n_inputs = 4 * self.substeps, len(self.terms), u_all.shape[-1]
         w = self.res_weight
         # the coefficient tangents' type (TrajectoryFitter.single_precision); the rest stays float64
@@ -848,6 +917,7 @@ class _ShootingProblem:
             hessian = np.zeros((n_c, n_c), order="F", dtype=np.float32 if single else np.float64)
         # where each support coefficient sits in a (states × terms) table flattened row by row
         state_term = self.row_of * n_terms + self.term_of
+        level_table = self.level_table[rows].to(tangent_type) if self.n_levels and coefficients else None
         # the coefficient tangents are carried in residual units (state k's row times its residual
         # weight w_k): the Gauss-Newton blocks then read them as they are
         forcing_scale = (w[:, None] * self.scale_t[None, :]).to(tangent_type)
@@ -921,7 +991,16 @@ class _ShootingProblem:
                                   ).view(m * n_win * n, n * n_terms)
                 # (2-D index_select: ~5x the speed of the same pick along a 3-D tensor's last axis);
                 # each sample's slot then takes its tangents in place (S = P·S + forcing)
-                tangents_c = torch.index_select(table, 1, state_term).view(m, n_win, n, n_c).mul_(forcing_scale)
+                tangents_c = torch.index_select(table, 1, state_term).view(m, n_win, n, self.n_c).mul_(forcing_scale)
+                if level_table is not None:
+                    # a level error δ moves every stage's rate by ∂f/∂u·δ, which the steps' D_i carry
+                    ju = self.terms.input_jacobian_torch(signals, c, n)
+                    ju = ju.reshape(m * n_win, n_stages, n, n_inputs).to(tangent_type)
+                    # (.., out state, stage, state)
+                    gains = d.view(m * n_win, n, n, n_stages).transpose(2, 3).to(tangent_type)
+                    per_input = torch.einsum("brsk,bskj->brj", gains, ju).view(m, n_win, n, n_inputs)
+                    levels = torch.einsum("mwrj,wmjl->mwrl", per_input, level_table[:, k0:k1])
+                    tangents_c = torch.cat([tangents_c, levels * w[None, None, :, None].to(tangent_type)], dim=-1)
                 weighted = (propagators * rescale).to(tangent_type)
             for i in range(m):
                 s_z = torch.bmm(propagators[i], s_z, out=tangents_z[i])
@@ -1088,15 +1167,16 @@ class _ShootingProblem:
 
         with torch.no_grad():
             _, blocks, ss = self._shoot(theta, z, "zc", beside=smallsignal)
+        k = self.n_c  # the coefficients' entries; the held levels' after them
         if ss is not None:
-            blocks["H"] += ss[0]
-            blocks["g"] += ss[1]
+            blocks["H"][:k, :k] += ss[0]
+            blocks["g"][:k] += ss[1]
         # the priors' curvature, kept apart too: the data's alone give the coefficients' covariance
         blocks["H_prior"] = torch.zeros_like(blocks["H"])
         for res, jac in (self._stability_residuals(theta), self._equilibrium_residuals(theta)):
             if res.size:
-                blocks["H_prior"] += torch.tensor(jac.T @ jac)
-                blocks["g"] += torch.tensor(jac.T @ res)
+                blocks["H_prior"][:k, :k] += torch.tensor(jac.T @ jac)
+                blocks["g"][:k] += torch.tensor(jac.T @ res)
         if self.ridge_unit.any():  # residuals unit·θ: a diagonal JᵀJ
             unit2 = torch.tensor(self.ridge_unit ** 2)
             blocks["H_prior"] += torch.diag(unit2)
@@ -1149,12 +1229,15 @@ class _ShootingProblem:
         torch = self.torch
         a = blocks["A"] + 1e-12 * torch.diag_embed(torch.diagonal(blocks["A"], dim1=1, dim2=2))
         h = blocks["H"] - torch.einsum("wkc,wkd->cd", blocks["E"], torch.linalg.solve(a, blocks["E"]))
+        if self.n_levels:  # the held levels' errors minimised out too
+            k = self.n_c
+            h = h[:k, :k] - h[:k, k:] @ torch.linalg.solve(h[k:, k:], h[k:, :k])
         return h.numpy() / np.outer(self.scale, self.scale)
 
     def prior_hessian(self, blocks) -> np.ndarray:
         """The priors' (stability, equilibrium, ridge) part of :meth:`profiled_hessian`, in
         coefficient units (they do not involve the window start states)."""
-        return blocks["H_prior"].numpy() / np.outer(self.scale, self.scale)
+        return blocks["H_prior"][:self.n_c, :self.n_c].numpy() / np.outer(self.scale, self.scale)
 
 
 class _ZeroModes:

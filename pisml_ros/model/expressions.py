@@ -502,18 +502,52 @@ class TermSet:
             jac = torch.addmm(jac.reshape(z.shape[0], -1), entries, weights.view(n_entries, -1))
         return values, jac.reshape(-1, n_out, n_states)
 
-    def _jacobian_plan(self, n_states: int, device):
-        """:meth:`values_and_jacobian_torch`'s varying derivative entries (their terms, their
-        states, their compiled expressions) and the constant ones as a (n_terms, n_states) table;
-        False where the compiled expressions fail (see :meth:`_symbolic_gradient_torch`)."""
+    def input_jacobian_torch(self, z, coefficients, n_states: int):
+        """The Jacobian of the field f = Θ(z)·C in the signals after the first ``n_states`` (the
+        inputs), as :meth:`values_and_jacobian_torch` gives it in the states.
+
+        Parameters
+        ----------
+        z : torch.Tensor, shape (points, n_signals)
+        coefficients : torch.Tensor, shape (n_terms, n_out)
+        n_states : int
+
+        Returns
+        -------
+        torch.Tensor, shape (points, n_out, n_signals - n_states)
+            ∂f_j / ∂u_s.
+        """
         import torch
 
-        key = (n_states, device)
+        width = z.shape[1] - n_states
+        n_out = coefficients.shape[1]
+        plan = self._jacobian_plan(z.shape[1], z.device, first=n_states)
+        if plan is False:
+            _, grad = self.values_and_gradient_torch(z)
+            jac = torch.mm(grad[..., n_states:].transpose(1, 2).reshape(-1, len(self)), coefficients)
+            return jac.view(-1, width, n_out).transpose(1, 2)
+        term_of, signal_of, fn, constant = plan
+        jac = (coefficients.T @ constant.to(coefficients.dtype)).expand(z.shape[0], n_out, width)
+        if term_of.numel():
+            entries = torch.stack([_column(v, z) for v in fn(*z.unbind(-1))], dim=-1)
+            weights = torch.zeros((term_of.numel(), n_out, width), dtype=coefficients.dtype, device=z.device)
+            weights[torch.arange(term_of.numel(), device=z.device), :, signal_of] = coefficients[term_of]
+            jac = torch.addmm(jac.reshape(z.shape[0], -1), entries, weights.view(term_of.numel(), -1))
+        return jac.reshape(-1, n_out, width)
+
+    def _jacobian_plan(self, n_states: int, device, first: int = 0):
+        """:meth:`values_and_jacobian_torch`'s varying derivative entries (their terms, their
+        signals counted from ``first``, their compiled expressions) and the constant ones as a
+        (n_terms, n_states - first) table, for the signals ``first`` ... ``n_states - 1``; False
+        where the compiled expressions fail (see :meth:`_symbolic_gradient_torch`)."""
+        import torch
+
+        key = (n_states, device) if first == 0 else (first, n_states, device)
         if key not in self._jacobian_plans:
-            constant = np.zeros((len(self), n_states))
+            constant = np.zeros((len(self), n_states - first))
             varying = []
             for t, row in enumerate(self._derivatives()):
-                for s, d in enumerate(row[:n_states]):
+                for s, d in enumerate(row[first:n_states]):
                     if d.is_number and d.is_finite:
                         constant[t, s] = float(d)
                     else:
