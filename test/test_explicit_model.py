@@ -126,6 +126,36 @@ def _replay_error(model, coef, data):
     return max(np.linalg.norm(a.x - b.x) / np.linalg.norm(b.x) for a, b in zip(pred, data))
 
 
+def _plain_shooting(problem, terms, theta, z, inputs=None):
+    """A shooting problem's trajectory residuals written plainly, (windows, samples·states), and their
+    Jacobians in θ and in each window's start offset z by torch's autodiff. ``inputs(k, theta)``: the
+    windows' inputs at sample k (default: as held, ``problem.U[:, k]``)."""
+    import torch
+
+    inputs = inputs or (lambda k, theta: problem.U[:, k])
+
+    def residuals(theta, z):
+        c = problem._matrix(theta)
+        x = problem.X[:, 0] + z * problem.x_unit
+        out = [(x - problem.X[:, 0]) * problem.res_weight]
+        for k in range(problem.window):
+            u = inputs(k, theta)
+            for _ in range(problem.substeps):
+                f = lambda y: terms.evaluate_torch(torch.cat([y, u], -1)) @ c  # noqa: E731
+                k1 = f(x)
+                k2 = f(x + 0.5 * problem.h * k1)
+                k3 = f(x + 0.5 * problem.h * k2)
+                k4 = f(x + problem.h * k3)
+                x = x + problem.h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            out.append((x - problem.X[:, k + 1]) * problem.res_weight)
+        return torch.stack(out, 1).reshape(problem.n_windows, -1)
+
+    jc = torch.func.jacfwd(residuals, argnums=0)(theta, z)
+    jz_all = torch.func.jacfwd(residuals, argnums=1)(theta, z)
+    jz = torch.stack([jz_all[w, :, w, :] for w in range(problem.n_windows)])
+    return residuals(theta, z), jc, jz
+
+
 @pytest.mark.parametrize("threads, single", [(1, False), (2, False), (2, True)])
 def test_shooting_normal_equations_match_autodiff(truth, threads, single):
     """The forward sensitivities integrated beside the states give the same Gauss-Newton blocks
@@ -146,28 +176,10 @@ def test_shooting_normal_equations_match_autodiff(truth, threads, single):
     theta = torch.tensor(start.ravel()[problem.idx] / problem.scale)
     z = 0.1 * torch.randn((problem.n_windows, 13), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 
-    def residuals(theta, z):  # the trajectory residuals written plainly, (windows, samples, states)
-        c = problem._matrix(theta)
-        x = problem.X[:, 0] + z * problem.x_unit
-        out = [(x - problem.X[:, 0]) * problem.res_weight]
-        for k in range(problem.window):
-            u = problem.U[:, k]
-            for _ in range(problem.substeps):
-                f = lambda y: model._terms.evaluate_torch(torch.cat([y, u], -1)) @ c  # noqa: E731
-                k1 = f(x)
-                k2 = f(x + 0.5 * problem.h * k1)
-                k3 = f(x + 0.5 * problem.h * k2)
-                k4 = f(x + problem.h * k3)
-                x = x + problem.h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            out.append((x - problem.X[:, k + 1]) * problem.res_weight)
-        return torch.stack(out, 1).reshape(problem.n_windows, -1)
-
     n_win = problem.n_windows
-    jc = torch.func.jacfwd(residuals, argnums=0)(theta, z)
-    jz_all = torch.func.jacfwd(residuals, argnums=1)(theta, z)
-    jz = torch.stack([jz_all[w, :, w, :] for w in range(n_win)])
+    r, jc, jz = _plain_shooting(problem, model._terms, theta, z)
     js = torch.func.jacfwd(problem._smallsignal_residuals)(theta)
-    r, rs = residuals(theta, z), problem._smallsignal_residuals(theta)
+    rs = problem._smallsignal_residuals(theta)
     blocks = problem.normal_equations(theta, z)
     expected = {"H": torch.einsum("wrc,wrd->cd", jc, jc) + js.T @ js, "g": torch.einsum("wrc,wr->c", jc, r) + js.T @ rs,
                 "A": jz.transpose(1, 2) @ jz, "E": jz.transpose(1, 2) @ jc, "bz": torch.einsum("wrk,wr->wk", jz, r)}
@@ -239,27 +251,9 @@ def test_held_training_levels_errors_are_parameters_with_their_prior(truth, thre
                                          np.linspace(-1.0, 1.0, problem.n_levels)]))
     z = 0.1 * torch.randn((problem.n_windows, 13), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 
-    def residuals(theta, z):
-        c = problem._matrix(theta)
-        x = problem.X[:, 0] + z * problem.x_unit
-        out = [(x - problem.X[:, 0]) * problem.res_weight]
-        for k in range(problem.window):
-            u = problem.U[:, k] + table[:, k] @ theta[n_c:]
-            for _ in range(problem.substeps):
-                f = lambda y: model._terms.evaluate_torch(torch.cat([y, u], -1)) @ c  # noqa: E731
-                k1 = f(x)
-                k2 = f(x + 0.5 * problem.h * k1)
-                k3 = f(x + 0.5 * problem.h * k2)
-                k4 = f(x + problem.h * k3)
-                x = x + problem.h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            out.append((x - problem.X[:, k + 1]) * problem.res_weight)
-        return torch.stack(out, 1).reshape(problem.n_windows, -1)
-
     n_win = problem.n_windows
-    jc = torch.func.jacfwd(residuals, argnums=0)(theta, z)
-    jz_all = torch.func.jacfwd(residuals, argnums=1)(theta, z)
-    jz = torch.stack([jz_all[w, :, w, :] for w in range(n_win)])
-    r = residuals(theta, z)
+    r, jc, jz = _plain_shooting(problem, model._terms, theta, z,
+                                inputs=lambda k, theta: problem.U[:, k] + table[:, k] @ theta[n_c:])
     assert float(jc[..., n_c:].abs().max()) > 0  # the levels move the states
     prior = torch.cat([torch.zeros(n_c), torch.ones(problem.n_levels)])
     blocks = problem.normal_equations(theta, z)
