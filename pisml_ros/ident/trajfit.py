@@ -544,12 +544,13 @@ def held_window_levels(u: np.ndarray, sigma: np.ndarray, counts: list, min_sampl
     unit = []
     for j in np.flatnonzero(sigma > 0):
         values, inverse = np.unique(u[..., j], return_inverse=True)
-        inverse = inverse.reshape(u.shape[:-1])
+        level_of = np.full(values.size, -1, dtype=np.int64)  # each distinct value's level, if held
         for v, value in enumerate(values.tolist()):
             count = counts[j].get(value, 1)
             if count >= min_samples:
-                index[..., j][inverse == v] = len(unit)
+                level_of[v] = len(unit)
                 unit.append(sigma[j] / np.sqrt(count))
+        index[..., j] = level_of[inverse.reshape(u.shape[:-1])]
     return index, np.array(unit, dtype=float)
 
 
@@ -669,26 +670,28 @@ class _ShootingProblem:
         self.ss = []
         # noisy measured inputs held at their stretch means (ident.noise.piecewise_constant_inputs):
         # their noise per input, for the levels' errors the small-signal residuals profile out
+        train_sigma = held_input_sigma(train)
         held_sigma = held_input_sigma(smallsignal) if smallsignal is not None else None
         if held_sigma is None:
-            held_sigma = held_input_sigma(train)
-        counts = held_level_counts([*train, *(smallsignal if smallsignal is not None else [])], held_sigma) \
+            held_sigma = train_sigma
+        # (the counts of every input held in either record set: each user reads its own inputs' only)
+        either = held_sigma if train_sigma is None else np.maximum(held_sigma, train_sigma)
+        counts = held_level_counts([*train, *(smallsignal if smallsignal is not None else [])], either) \
             if held_sigma is not None else None
         # the training records' held levels: each level's error is a parameter after the coefficients
         # (errors in variables, in units of its σ/√n with a unit normal prior), shared by every window
         # on it; their forcing per window sample and input comes from a one-hot table of the levels
         self.n_c = self.idx.size
         self.n_levels = 0
-        train_sigma = held_input_sigma(train)
         if train_sigma is not None and fitter.held_levels:
-            index, unit = held_window_levels(uw, train_sigma, held_level_counts(
-                [*train, *(smallsignal if smallsignal is not None else [])], train_sigma))
+            index, unit = held_window_levels(uw, train_sigma, counts)
             if unit.size:
                 self.n_levels = unit.size
-                self.level_index = torch.tensor(np.where(index < 0, unit.size, index))  # "no level": a zero slot
+                index = np.where(index < 0, unit.size, index)  # "no level": a last slot, of zero error
+                self.level_index = torch.tensor(index)
                 self.level_unit = torch.tensor(unit)
                 one_hot = np.zeros((*index.shape, unit.size + 1))
-                np.put_along_axis(one_hot, np.where(index < 0, unit.size, index)[..., None], 1.0, axis=-1)
+                np.put_along_axis(one_hot, index[..., None], 1.0, axis=-1)
                 self.level_table = torch.tensor(one_hot[..., :unit.size] * unit)  # ∂u/∂θ_level
         self.n_params = self.n_c + self.n_levels
         if smallsignal is not None and lambda_jac > 0:

@@ -486,21 +486,13 @@ class TermSet:
             values, grad = self.values_and_gradient_torch(z)
             jac = torch.mm(grad[..., :n_states].transpose(1, 2).reshape(-1, len(self)), coefficients)
             return values, jac.view(-1, n_states, n_out).transpose(1, 2)
-        term_of, signal_of, fn, constant = plan
         # the state pass's own values (evaluate_split_torch) where its plan differs: a term that is not
         # a product of factors, or affine sums (the same to rounding, and quicker)
         if self._torch_plan() and self._split_plan(n_states, z.device)[4] is None:
             values = self.evaluate_torch(z)
         else:
             values = self.evaluate_split_torch(z[:, :n_states], z[:, n_states:]).contiguous()
-        n_entries = term_of.numel()
-        jac = (coefficients.T @ constant.to(coefficients.dtype)).expand(z.shape[0], n_out, n_states)
-        if n_entries:
-            entries = torch.stack([_column(v, z) for v in fn(*z.unbind(-1))], dim=-1)
-            weights = torch.zeros((n_entries, n_out, n_states), dtype=coefficients.dtype, device=z.device)
-            weights[torch.arange(n_entries, device=z.device), :, signal_of] = coefficients[term_of]
-            jac = torch.addmm(jac.reshape(z.shape[0], -1), entries, weights.view(n_entries, -1))
-        return values, jac.reshape(-1, n_out, n_states)
+        return values, _contracted_plan(plan, z, coefficients)
 
     def input_jacobian_torch(self, z, coefficients, n_states: int):
         """The Jacobian of the field f = Θ(z)·C in the signals after the first ``n_states`` (the
@@ -520,20 +512,12 @@ class TermSet:
         import torch
 
         width = z.shape[1] - n_states
-        n_out = coefficients.shape[1]
         plan = self._jacobian_plan(z.shape[1], z.device, first=n_states)
         if plan is False:
             _, grad = self.values_and_gradient_torch(z)
             jac = torch.mm(grad[..., n_states:].transpose(1, 2).reshape(-1, len(self)), coefficients)
-            return jac.view(-1, width, n_out).transpose(1, 2)
-        term_of, signal_of, fn, constant = plan
-        jac = (coefficients.T @ constant.to(coefficients.dtype)).expand(z.shape[0], n_out, width)
-        if term_of.numel():
-            entries = torch.stack([_column(v, z) for v in fn(*z.unbind(-1))], dim=-1)
-            weights = torch.zeros((term_of.numel(), n_out, width), dtype=coefficients.dtype, device=z.device)
-            weights[torch.arange(term_of.numel(), device=z.device), :, signal_of] = coefficients[term_of]
-            jac = torch.addmm(jac.reshape(z.shape[0], -1), entries, weights.view(term_of.numel(), -1))
-        return jac.reshape(-1, n_out, width)
+            return jac.view(-1, width, coefficients.shape[1]).transpose(1, 2)
+        return _contracted_plan(plan, z, coefficients)
 
     def _jacobian_plan(self, n_states: int, device, first: int = 0):
         """:meth:`values_and_jacobian_torch`'s varying derivative entries (their terms, their
@@ -628,6 +612,23 @@ class TermSet:
         return np.stack([np.stack([np.broadcast_to(c, z.shape[:-1]).astype(float) for c in row], axis=-1)
                          for row in rows], axis=-2)
 
+
+
+def _contracted_plan(plan, z, coefficients):
+    """The field's Jacobian (points, n_out, width) at ``z`` from a :meth:`TermSet._jacobian_plan` over
+    ``width`` signals: its constant table contracted with C, plus the varying entries' values as the
+    columns of one product with a matrix that puts c[t, j] at (entry, (j, s))."""
+    import torch
+
+    term_of, signal_of, fn, constant = plan
+    n_out, width = coefficients.shape[1], constant.shape[1]
+    jac = (coefficients.T @ constant.to(coefficients.dtype)).expand(z.shape[0], n_out, width)
+    if term_of.numel():
+        entries = torch.stack([_column(v, z) for v in fn(*z.unbind(-1))], dim=-1)
+        weights = torch.zeros((term_of.numel(), n_out, width), dtype=coefficients.dtype, device=z.device)
+        weights[torch.arange(term_of.numel(), device=z.device), :, signal_of] = coefficients[term_of]
+        jac = torch.addmm(jac.reshape(z.shape[0], -1), entries, weights.view(term_of.numel(), -1))
+    return jac.reshape(-1, n_out, width)
 
 def _column(value, z):
     """A compiled expression's value at rows ``z`` (..., n_signals) as a tensor of shape z.shape[:-1]:
