@@ -187,7 +187,7 @@ class TermSet:
         self._grad = None
         self._grad_symbolic = None
         self._derivative_exprs = None
-        self._split = None
+        self._splits = {}  # state count -> :meth:`_split_plan`'s plan
         self._ones_cache = {}
 
     def __len__(self):
@@ -327,7 +327,10 @@ class TermSet:
         """
         import torch
 
-        if self._split is None or self._split[2] != n_states:
+        # a plan per state count, each built and stored whole: the shooting windows' threads call this
+        # at once, and a single slot rebuilt for another count was read half-replaced (stop 92)
+        split = self._splits.get(n_states)
+        if split is None:
             others, index = self._plan_layout(whole_terms=True)
             parts = _affine_parts(others)
             names = [sympy.Dummy(f"affine{k}") for k in range(len(parts))]
@@ -339,11 +342,11 @@ class TermSet:
                 table = [[float(p.coeff(s)) if s in p.free_symbols else 0.0 for s in self._symbols] for p in parts]
                 offset = [float(p.as_coeff_Add()[0]) for p in parts]
                 affine = torch.tensor([[b, *row] for b, row in zip(offset, table)], dtype=torch.float64)
-            self._split = (fn, used, n_states, torch.as_tensor(index), affine)
-        if self._split[3].device != device:  # (moved once: training on an accelerator)
-            self._split = (*self._split[:3], self._split[3].to(device),
-                           None if self._split[4] is None else self._split[4].to(device))
-        return self._split
+            split = self._splits[n_states] = (fn, used, n_states, torch.as_tensor(index), affine)
+        if split[3].device != device:  # (moved once: training on an accelerator)
+            split = self._splits[n_states] = (*split[:3], split[3].to(device),
+                                              None if split[4] is None else split[4].to(device))
+        return split
 
     def _ones(self, y):
         """A row of ones, one per row of ``y`` (cached per count, type and device; never written to)."""
