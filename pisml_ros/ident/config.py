@@ -85,7 +85,11 @@ class IdentConfig:
     # not taken (stop 92, bench/setting_sweep.py --scenario "noisy inputs", unseen 240-247 and
     # 280-287): 4 of 16 within both targets with no spurious mode against stop 91's 6, IOD median
     # 0.582 / 0.539 % against 0.561 / 0.545 %, fits median 80 / 84 s against 59 / 71 s (README,
-    # "Noise on the measured inputs"); exact inputs (the protocol) hold nothing either way
+    # "Noise on the measured inputs"); exact inputs (the protocol) hold nothing either way. Why it
+    # moves so little (stop 93, recording 286): the windows' data see a level's error with a
+    # precision of 0.03-0.18 of the prior's (median over the 36 levels, per refinement stage), so
+    # the fitted errors stay near 0 (rms 0.04-0.15 σ/√n against the true 0.91); and a looser prior
+    # (3 σ/√n) on 286, 280, 244, 246 gave 0.953 / 0.545, 0.211 / 1.100, 1.416 / 1.659, 0.319 / 0.516 %
     refine_held_levels: bool = False
     # how the held inputs' stretches are found (ident.noise.piecewise_constant_inputs): an inner
     # interval whose mean differs from the rest of its stretch by more than this many standard
