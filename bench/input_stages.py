@@ -3,14 +3,17 @@
 With 40 dB on the measured inputs too (the "noisy inputs" scenario), the engine holds ug and theta_g
 at their stretch means (:func:`pisml_ros.ident.noise.piecewise_constant_inputs`), each level off by
 σ/√n. This script fits PISML (default settings) on one recording per seed with the training records'
-inputs exact in some stages, the small-signal records' held throughout, and scores the model on the
+inputs exact in some stages, the small-signal records' held (but in the last two modes), and scores the model on the
 protocol's test records:
 
 - ``held``: the engine as it is (every stage on the held inputs);
 - ``exact``: the training records' exact inputs everywhere (nothing held there);
 - ``late``: held inputs up to the distillation, exact ones in the trajectory refinement and in every
   free-run training score (the selection's and the refinement's own checks);
-- ``early``: exact inputs up to the distillation, held ones in the refinement and the scores.
+- ``early``: exact inputs up to the distillation, held ones in the refinement and the scores;
+- ``smallsignal``: the small-signal records' exact inputs, the training records' held;
+- ``both``: every record's exact inputs (the same records' states, their noise as drawn with the
+  inputs' noise: the control of how these recordings fare without any).
 
 ``late`` and ``early`` swap the records the estimator passes to ``refine_explicit`` and
 ``training_errors`` (patched in :mod:`pisml_ros.ident.estimators` for the fit's duration): a
@@ -31,7 +34,7 @@ from pathlib import Path
 BENCH = Path(__file__).resolve().parent
 sys.path[:0] = [str(BENCH), str(BENCH.parent)]
 
-MODES = ("held", "exact", "late", "early")
+MODES = ("held", "exact", "late", "early", "smallsignal", "both")
 
 
 @contextlib.contextmanager
@@ -60,9 +63,10 @@ def records_swapped(replacements: dict):
 
 
 def fit_mode(mode: str, seed: int) -> dict:
-    """One fit of the noisy-input recording ``seed`` with the training inputs of ``mode``; its test
-    errors, coefficients, chosen candidate and wall time."""
-    from bench import datasets, make_estimator
+    """One fit of the noisy-input recording ``seed`` with the inputs of ``mode``; its test errors, the
+    ug (0.2-1.1) where it has an unstable mode and the plant none, coefficients, chosen candidate and
+    wall time."""
+    from bench import datasets, make_estimator, plant_grid, spectra, spurious_points
 
     from pisml_ros.analysis.metrics import protocol_errors
     from pisml_ros.data import Dataset
@@ -70,22 +74,30 @@ def fit_mode(mode: str, seed: int) -> dict:
     from pisml_ros.ident import IdentConfig
     from pisml_ros.ident.noise import input_noise_std, piecewise_constant_inputs
 
-    _, train, small, test = datasets({}, 40.0, seed=seed, input_noise=True)
-    _, clean, _, _ = datasets({}, None, seed=seed)
-    exact = Dataset(train.state_names, train.input_names,
-                    [dataclasses.replace(tr, u=c.u.copy()) for tr, c in zip(train, clean)],
-                    {k: v for k, v in train.metadata.items() if k != "inputs_denoised"})
+    plant, train, small, test = datasets({}, 40.0, seed=seed, input_noise=True)
+    _, clean, clean_small, _ = datasets({}, None, seed=seed)
+
+    def exact_inputs(noisy, clean):
+        return Dataset(noisy.state_names, noisy.input_names,
+                       [dataclasses.replace(tr, u=c.u.copy()) for tr, c in zip(noisy, clean)],
+                       {k: v for k, v in noisy.metadata.items() if k != "inputs_denoised"})
+
+    exact = exact_inputs(train, clean)
     # the held records as the estimator's own start makes them (the same function and noise estimate)
     held_train, _ = piecewise_constant_inputs(train, sigma=input_noise_std(train))
     held_small, _ = piecewise_constant_inputs(small, sigma=input_noise_std(small))
-    given = exact if mode in ("exact", "early") else train
+    given = exact if mode in ("exact", "early", "both") else train
+    if mode in ("smallsignal", "both"):
+        small = exact_inputs(small, clean_small)
     late = exact if mode == "late" else held_train
     swap = {len(train): late, len(train) + len(small): concat_datasets([late, held_small])}
     started = time.monotonic()
     with records_swapped(swap) if mode in ("late", "early") else contextlib.nullcontext():
         est = make_estimator("pisml", IdentConfig()).fit(given, small)
     errors = protocol_errors(est.model_, test)
-    return {"seed": seed, "mode": mode, "iod": errors["iod"], "ood": errors["ood"],
+    grid = plant_grid(plant)
+    spurious = spurious_points(spectra(est.model_, grid), {g: plant.eigenvalues(g, 0.0) for g in grid})
+    return {"seed": seed, "mode": mode, "iod": errors["iod"], "ood": errors["ood"], "spurious": spurious,
             "coefficients": int(est.model_.n_parameters), "chosen": est.model_.metadata["selection"]["chosen"],
             "seconds": round(time.monotonic() - started, 1)}
 
@@ -114,7 +126,8 @@ def main(argv=None) -> int:
         for mode in modes:
             row = fit_mode(mode, seed)
             rows.append(row)
-            print(f"{seed} {mode:5s} IOD {row['iod']:.3f} OOD {row['ood']:.3f} n {row['coefficients']} "
+            print(f"{seed} {mode:5s} IOD {row['iod']:.3f} OOD {row['ood']:.3f} spurious {row['spurious']} "
+                  f"n {row['coefficients']} "
                   f"{row['chosen']} {row['seconds']:.0f} s", flush=True)
             if args.out:  # after every fit: a long run stopped early keeps what it measured
                 Path(args.out).write_text(json.dumps(rows, indent=1))
