@@ -83,16 +83,17 @@ def fit_mode(mode: str, seed: int) -> dict:
                        {k: v for k, v in noisy.metadata.items() if k != "inputs_denoised"})
 
     exact = exact_inputs(train, clean)
-    # the held records as the estimator's own start makes them (the same function and noise estimate)
-    held_train, _ = piecewise_constant_inputs(train, sigma=input_noise_std(train))
-    held_small, _ = piecewise_constant_inputs(small, sigma=input_noise_std(small))
     given = exact if mode in ("exact", "early", "both") else train
     if mode in ("smallsignal", "both"):
         small = exact_inputs(small, clean_small)
-    late = exact if mode == "late" else held_train
-    swap = {len(train): late, len(train) + len(small): concat_datasets([late, held_small])}
+    swapping = contextlib.nullcontext()
+    if mode in ("late", "early"):
+        # the held records as the estimator's own start makes them (the same function and noise estimate)
+        late = exact if mode == "late" else piecewise_constant_inputs(train, sigma=input_noise_std(train))[0]
+        held_small, _ = piecewise_constant_inputs(small, sigma=input_noise_std(small))
+        swapping = records_swapped({len(train): late, len(train) + len(small): concat_datasets([late, held_small])})
     started = time.monotonic()
-    with records_swapped(swap) if mode in ("late", "early") else contextlib.nullcontext():
+    with swapping:
         est = make_estimator("pisml", IdentConfig()).fit(given, small)
     errors = protocol_errors(est.model_, test)
     grid = plant_grid(plant)
