@@ -47,8 +47,10 @@ def replayed_choice(table: dict, config) -> str:
                               "config": config.to_dict()})
     floor = recorded.get("noise_floor_pct")
     noisy = recorded.get("tolerance_floor_pct") is not None
+    # the short windows' costs where the fit judged them (low-SNR records: IdentConfig.selection_window_excess)
     selection = _configured_selection(template, models, scores, config, {}, recorded["hold_error_pct"],
-                                      noise_floor=floor, tolerance_floor=floor if noisy else None)
+                                      noise_floor=floor, tolerance_floor=floor if noisy else None,
+                                      window_costs=recorded.get("window_costs"))
     return selection.metadata["selection"]["chosen"]
 
 

@@ -2525,3 +2525,92 @@ def test_rivals_are_the_eligible_candidates_near_the_best_score():
     assert rival_names("refined", eligible, scores, 0.7) == ["pruned +0.1 %", "pruned +0.1 % x2"]
     assert rival_names("refined", eligible, scores, 0.7, limit=1) == ["pruned +0.1 %"]
     assert rival_names("distilled", ["distilled"], scores, 0.5) == []
+
+
+def test_window_costs_tell_a_lost_resonance_from_the_records_short_spans():
+    """``trajfit.window_costs``: over 1 ms windows, starts fitted, the true damped resonance follows
+    noisy step responses far better than one with the same gain and a resonance damped away (the
+    rescue family's failure at 30 dB, stop 94); ``selection.window_misfits`` takes out the second."""
+    from pisml_ros.ident.selection import SELECTION_WINDOW, window_misfits
+    from pisml_ros.ident.trajfit import window_costs
+
+    omega, dt = 9000.0, 1e-4
+
+    def model(zeta):
+        coef = np.array([[0.0, -omega ** 2], [1.0, -2 * zeta * omega], [0.0, omega ** 2]])
+        return ExplicitModel(("x1", "x2"), ("u",), ["x1", "x2", "u"], coef, {})
+
+    truth = model(0.07)
+    rng = np.random.default_rng(0)
+    records = []
+    for k, level in enumerate((0.5, -0.8, 1.0)):
+        t = np.arange(400) * dt
+        u = np.where(t >= 0.01, level, 0.0)[:, None]
+        x = np.zeros((t.size, 2))
+        for i in range(t.size - 1):  # fine RK4 of the truth, the input held over each sample
+            state, h = x[i].copy(), dt / 20
+            for _ in range(20):
+                f = lambda s: truth.vector_field(s, u[i])  # noqa: E731
+                a = f(state)
+                b = f(state + h / 2 * a)
+                c = f(state + h / 2 * b)
+                d = f(state + h * c)
+                state = state + h / 6 * (a + 2 * b + 2 * c + d)
+            x[i + 1] = state
+        noise = 0.02 * np.array([1.0, omega]) * rng.standard_normal(x.shape)
+        records.append(Trajectory(k, t, x + noise, u))
+    data = Dataset(("x1", "x2"), ("u",), records, {"dt": dt})
+    costs = window_costs({"truth": truth, "damped": model(1.5), "again": model(0.07)}, data, SELECTION_WINDOW)
+    assert costs["truth"] == pytest.approx(costs["again"])
+    assert 2 * (SELECTION_WINDOW + 1) * (costs["damped"] - costs["truth"]) > 1000
+    assert window_misfits(["truth", "damped"], costs, 300.0) == ["damped"]
+    assert window_misfits(["truth", "damped"], costs, np.inf) == []  # off
+    assert window_misfits(["truth", "damped"], {}, 300.0) == []  # no costs: nothing to judge
+
+
+def test_selection_passes_over_a_family_the_short_windows_reject_on_low_snr_records(train):
+    """``selection_window_excess``: a family that scores best run freely but whose short-window cost is
+    far above another's does not compete; within the excess, or without costs, the scores decide.
+    Low-SNR records (``low_snr_noise_floor``) also refine in the longer growing windows."""
+    from pisml_ros.ident.estimators import growing_windows, low_snr
+    from pisml_ros.ident.selection import _configured_selection, _selected
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    def model(nonzero):
+        coef = np.zeros((6, 1))
+        coef[:nonzero] = 1.0
+        return ExplicitModel(("x",), ("u",), ["1", "x", "u", "x**2", "x*u", "u**2"], coef, {})
+
+    candidates = {"refined": model(6), "pruned +0.1 %": model(5),
+                  "refined with growing prior": model(6), "pruned +0.1 % with growing prior": model(4)}
+    scores = {"refined": 9.0, "pruned +0.1 %": 8.0, "refined with growing prior": 5.0,
+              "pruned +0.1 % with growing prior": 5.1}
+    costs = {"refined": 2829.0, "pruned +0.1 %": 2829.1, "refined with growing prior": 2926.0,
+             "pruned +0.1 % with growing prior": 2892.0}
+
+    def chosen(**kwargs):
+        return _selected(candidates["refined"], candidates, scores, tolerance=0.5, **kwargs).metadata["selection"]
+
+    assert chosen()["chosen"] == "pruned +0.1 % with growing prior"
+    judged = chosen(window_costs=costs, window_excess=300.0)
+    assert judged["chosen"] == "pruned +0.1 %"
+    assert judged["window_rejected"] == ["refined with growing prior", "pruned +0.1 % with growing prior"]
+    assert judged["window_costs"] == costs and judged["window_excess"] == 300.0
+    # 22 x 62.9 = 1384 for the pruned one: within an excess of 1500 it competes, and wins again
+    assert chosen(window_costs=costs, window_excess=1500.0)["chosen"] == "pruned +0.1 % with growing prior"
+    assert chosen(window_costs=costs)["chosen"] == "pruned +0.1 % with growing prior"  # excess inf: off
+    cfg = IdentConfig()
+    assert cfg.selection_window_excess == 300.0 and cfg.refine_growing_windows_low_snr == (20, 50, 100)
+    configured = _configured_selection(candidates["refined"], candidates, scores, cfg, {}, np.inf, window_costs=costs)
+    assert configured.metadata["selection"]["chosen"] == "pruned +0.1 %"
+    # which records are low-SNR: the protocol's at 30 dB, not at 40 dB
+    assert low_snr(add_measurement_noise(train, 30.0, seed=1), cfg)
+    assert growing_windows(add_measurement_noise(train, 30.0, seed=1), cfg) == (20, 50, 100)
+    assert growing_windows(add_measurement_noise(train, 40.0, seed=1), cfg) == (10, 25, 50)
+    assert growing_windows(train, cfg) == (10, 25, 50)
+    off = IdentConfig.from_mapping({"refine_growing_windows_low_snr": ""})
+    assert growing_windows(add_measurement_noise(train, 30.0, seed=1), off) == (10, 25, 50)
+    with pytest.raises(ConfigError, match="refine_growing_windows_low_snr"):
+        IdentConfig.from_mapping({"refine_growing_windows_low_snr": "20,50"})
+    with pytest.raises(ConfigError, match="selection_window_excess"):
+        IdentConfig.from_mapping({"selection_window_excess": -1})

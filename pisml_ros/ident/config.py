@@ -194,6 +194,19 @@ class IdentConfig:
     # pass faster: the same models, recordings 0-4 in 52-61 s, median 53.8 s, instead of 89-130 s;
     # `--set refine_growing_evaluations=15,10,10` gives the old models in about two thirds of the time)
     refine_growing_evaluations: tuple = (30, 20, 20)
+    # the growing stages' windows on low-SNR records (the training records' noise floor,
+    # noise.noise_floor_error, at or above low_snr_noise_floor %; empty: refine_growing_windows there
+    # too). At 30 dB the windows of 10 samples leave the first start's family with one of the two LCL
+    # resonances lost (W ~1500 at ug 0.8), and the selection takes the rescue's family; from windows of
+    # 20 the first family keeps both (stop 85, recordings 185 and 187: best candidates 0.90-3.2 % IOD
+    # against 2.0-8.8 %), but the rescue's family, with a resonance lost, scores better run freely,
+    # so the windows alone chose no better (stop 85: 0 of 8 either way on 184-191, OOD median 4.86
+    # against 5.51 %). Stop 94 took them with selection_window_excess, which passes that family over
+    refine_growing_windows_low_snr: tuple = (20, 50, 100)
+    # the noise floor (%, noise.noise_floor_error of the training records) from which the records
+    # count as low-SNR (refine_growing_windows_low_snr, selection_window_excess); inf: never. Measured
+    # on the protocol: 40 dB 1.5-2.0 % (2.7-2.9 % with the small-signal steps at ug 1.0), 30 dB 4.9-6.4 %
+    low_snr_noise_floor: float = 3.5
     # at most this many windows per growing-window stage, evenly spread over the records (0 or an
     # empty list: all of them); a stage's Gauss-Newton pass is linear in its windows. Stop 67 (to buy
     # fit time), 240 of the 480 windows of 10 (`bench/setting_sweep.py run --name maxwin240-s67 --set
@@ -872,6 +885,19 @@ class IdentConfig:
     # replayed on the unseen recordings 40-55: 10 of 16 as without (44, 45, 50 re-chosen, none across
     # the targets; 50 takes 120 coefficients against 80)
     selection_grid_stability: bool = False
+    # on low-SNR records (low_snr_noise_floor), the eligible candidates whose multiple-shooting cost
+    # over windows of SELECTION_WINDOW samples (coefficients fixed, each window's start state fitted:
+    # trajfit.window_costs) exceeds the lowest one's by more than this, as a chi-square (2 (window + 1)
+    # times the cost difference: the squared misfit in noise units), do not compete; 0 or inf: off.
+    # Why (stop 94, 30 dB, recordings 184-191 with refine_growing_windows_low_snr): the rescue's
+    # family had lost one of the two LCL resonances (W 1300-1470 at ug 0.8, one pair of modes at
+    # -650 ± 9150j 1/s gone to the real axis or to -730 ± 740j) and reproduced the records run freely
+    # better (185: 4.9 against 7.6-51 %; 187: 5.2-9.7 against 6.4-48 %), but the 1 ms windows
+    # 550-2200 worse, where the first family's candidates lie within 110 of each other with 60-230
+    # coefficients. Replayed on the eight candidate tables: 185 1.168 / 6.613 % (W 1412) -> 0.928 /
+    # 1.745 % (W 35), 187 2.274 / 7.005 % (W 1314) -> 1.265 / 2.169 % (W 19), the other six as
+    # chosen (150 also changes 189, 1.259 / 1.402 -> 1.133 / 0.778 %; 300-1000 the same as 300)
+    selection_window_excess: float = 300.0
     # on noisy records, where the chosen model's slowest mode at the small-signal records' rest points
     # decays slower than this (1/s) and eligible candidates within selection_floor_tolerance of the
     # best score decay at least this fast there, the choice is made again among those
@@ -1012,6 +1038,11 @@ class IdentConfig:
         if any(b < 0 for b in self.refine_prune_budgets):
             raise ConfigError(f"identification config: refine_prune_budgets must be >= 0, got "
                               f"{list(self.refine_prune_budgets)}")
+        low = self.refine_growing_windows_low_snr
+        if low and (len(low) != len(self.refine_growing_evaluations) or any(v <= 0 for v in low)):
+            raise ConfigError(f"identification config: refine_growing_windows_low_snr must be empty or one positive "
+                              f"window per growing stage (refine_growing_evaluations "
+                              f"{list(self.refine_growing_evaluations)}), got {list(low)}")
         for stages in ("growing", "polish"):
             windows, evaluations = (getattr(self, f"refine_{stages}_{k}") for k in ("windows", "evaluations"))
             if windows and (len(windows) != len(evaluations) or any(v <= 0 for v in (*windows, *evaluations))):
@@ -1037,7 +1068,7 @@ class IdentConfig:
                               f"{self.refine_max_step}")
         for key in ("refine_rescue_ratio", "refine_retry_ratio", "refine_rescue_stability_weight",
                     "selection_round_rise", "selection_warn_noise_ratio", "selection_warn_noise_margin",
-                    "selection_floor_tolerance"):
+                    "selection_floor_tolerance", "selection_window_excess", "low_snr_noise_floor"):
             if not getattr(self, key) >= 0:  # also NaN, which would switch the rescue or the rule off unseen
                 raise ConfigError(f"identification config: {key} must be >= 0 (inf: off), got {getattr(self, key)}")
         if not (math.isfinite(self.selection_decay_margin) and self.selection_decay_margin >= 0):
@@ -1075,7 +1106,8 @@ class IdentConfig:
         out["hidden"] = list(self.hidden)
         out["refine_prune_budgets"] = list(self.refine_prune_budgets)
         out["refit_budgets"] = list(self.refit_budgets)
-        for key in ("refine_growing_windows", "refine_growing_evaluations", "refine_growing_max_windows", "refine_polish_windows",
-                    "refine_polish_evaluations", "selection_equilibrium_grid"):
+        for key in ("refine_growing_windows", "refine_growing_windows_low_snr", "refine_growing_evaluations",
+                    "refine_growing_max_windows", "refine_polish_windows", "refine_polish_evaluations",
+                    "selection_equilibrium_grid"):
             out[key] = list(getattr(self, key))
         return out

@@ -34,10 +34,10 @@ from .library import (centred_terms, coupling_separation, extended_library, filt
 from .limiter import fit_reference_limit
 from .noise import input_noise_std, piecewise_constant_inputs
 from .roles import SignalRoles
-from .selection import (LONG_BRANCH_SUFFIX, _any_beats_hold, _configured_selection, _noisy_choice_needs_retry,
-                        _prune_round_name, _refinement_family, _refinement_suffices, _unpruned_refinement_lost,
+from .selection import (LONG_BRANCH_SUFFIX, SELECTION_WINDOW, _any_beats_hold, _configured_selection,
+                        _noisy_choice_needs_retry, _prune_round_name, _refinement_family, _refinement_suffices, _unpruned_refinement_lost,
                         _with_equilibria, _would_choose, _would_choose_misfits)
-from .trajfit import SHOOTING_PARTS_MAX, blas_threads
+from .trajfit import SHOOTING_PARTS_MAX, blas_threads, window_costs
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
 # the candidate name of the backbone fitted with the noise correction (the second refinement start)
@@ -475,9 +475,18 @@ class PISML(_Estimator):
         unscored = {name: model for name, model in candidates.items() if name not in scores}
         scores.update(training_errors(unscored, scoring))
         self.candidates_ = candidates
+        # on low-SNR records the run-free score can prefer a model that lost a fast mode: the short
+        # windows judge them too (IdentConfig.selection_window_excess)
+        short_costs = None
+        if noisy and cfg.refine and 0 < cfg.selection_window_excess < np.inf and low_snr(train, cfg):
+            started = time.monotonic()
+            short_costs = window_costs({name: model for name, model in candidates.items()
+                                        if scores.get(name, np.inf) < hold}, train, SELECTION_WINDOW)
+            self.metrics_["window_cost_seconds"] = time.monotonic() - started
         # (on noisy records the refinement is what fits the trajectories: a model from before it is a caution)
         explicit = _configured_selection(explicit, candidates, scores, cfg, verdicts, hold, noise_floor=noise_floor,
-                                         refinement_expected=cfg.refine and noisy, tolerance_floor=tolerance_floor)
+                                         refinement_expected=cfg.refine and noisy, tolerance_floor=tolerance_floor,
+                                         window_costs=short_costs)
         explicit.metadata["selection"]["scored_on"] = ("training and small-signal records" if scoring is not train
                                                        else "training records")
         if noisy and not (smallsignal is not None and len(smallsignal)):
@@ -1505,6 +1514,22 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     return out
 
 
+def low_snr(train: Dataset, cfg: IdentConfig) -> bool:
+    """Whether ``train`` counts as low-SNR records: its noise floor (:func:`.noise.noise_floor_error`)
+    at or above ``cfg.low_snr_noise_floor`` (%)."""
+    from .noise import noise_floor_error
+
+    return bool(noise_floor_error(train) >= cfg.low_snr_noise_floor)
+
+
+def growing_windows(train: Dataset, cfg: IdentConfig) -> tuple:
+    """The growing stages' windows (samples) on ``train``: ``cfg.refine_growing_windows_low_snr`` on
+    low-SNR records (:func:`low_snr`) where set, else ``cfg.refine_growing_windows``."""
+    if cfg.refine_growing_windows_low_snr and low_snr(train, cfg):
+        return tuple(cfg.refine_growing_windows_low_snr)
+    return tuple(cfg.refine_growing_windows)
+
+
 def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig,
                     make_fitter, progress=None, substeps_used: set | None = None) -> dict:
     """The noisy-data refinement (and clean data's where no candidate reproduces them,
@@ -1525,7 +1550,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     """
     from .trajfit import START_DAMPING, backward_elimination
 
-    stages = list(zip(cfg.refine_growing_windows, cfg.refine_growing_evaluations))
+    stages = list(zip(growing_windows(train, cfg), cfg.refine_growing_evaluations))
     polish = list(zip(cfg.refine_polish_windows, cfg.refine_polish_evaluations))
     # a later prune round starts next to a minimum of a wider support: the longest windows suffice
     repolish = polish[-1:]

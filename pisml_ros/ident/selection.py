@@ -359,7 +359,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
               noise_floor: float | None = None, noise_ratio: float = np.inf,
               noise_margin: float = 0.0, refinement_expected: bool = False,
               rest_offset: float = np.inf, tolerance_floor: float | None = None,
-              floor_tolerance: float = np.inf, decay_margin: float = 0.0) -> ExplicitModel:
+              floor_tolerance: float = np.inf, decay_margin: float = 0.0,
+              window_costs: dict | None = None, window_excess: float = np.inf) -> ExplicitModel:
     """The candidate with the smallest free-run error in ``scores`` (training records, and the
     small-signal records where a fit has them), with ``template``'s metadata and the selection.
 
@@ -410,6 +411,12 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     at least that fast there, the choice is made again among those (:func:`_decay_rechoice`; the
     metadata's ``decay_rechoice``).
 
+    With ``window_costs`` (name -> :func:`.trajfit.window_costs` over windows of
+    :data:`SELECTION_WINDOW` samples; low-SNR records only, ``IdentConfig.selection_window_excess``),
+    the eligible candidates whose cost exceeds the lowest eligible one's by more than
+    ``window_excess`` as a chi-square (:func:`window_misfits`) do not compete: a model that the
+    records' short spans reject is not taken for reproducing them better run freely.
+
     What remains wrong with the choice (no better than the hold, or far worse than the noise
     explains where ``noise_floor`` is given: :func:`_selection_warnings`; a candidate from before
     the refinement where ``refinement_expected``; inconsistent rest points;
@@ -421,6 +428,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     models, misfits, eligible = eligible_candidates(
         scores, hold, lambda name: _inconsistent_points(name, candidates, points, verdicts, unstable_rate,
                                                         rest_offset=rest_offset))
+    window_rejected = window_misfits(eligible, window_costs or {}, window_excess)
+    eligible = [name for name in eligible if name not in window_rejected]
     lost = _lost_rounds(scores, round_rise)
     grid_inputs = _grid_inputs(template, equilibrium_grid)
     # the grid stability check (grid_stability) only where some candidate beats the hold, as the grid rule below
@@ -481,6 +490,10 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                    "equilibrium_grid": list(equilibrium_grid), "missing_equilibria": missing,
                                    "grid_stability": bool(grid_stability),
                                    "decay_margin": decay_margin, "decay_rechoice": rechoice,
+                                   # the short windows' costs, and the candidates they took out
+                                   "window_costs": dict(window_costs) if window_costs else None,
+                                   "window_excess": window_excess if window_costs else None,
+                                   "window_rejected": window_rejected,
                                    # the choice's slowest mode at the small-signal rest points (1/s;
                                    # None where the rule above does not apply)
                                    "smallsignal_rate": slow_rate,
@@ -493,6 +506,23 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                                                    noise_floor, noise_ratio, noise_margin,
                                                                    refinement_expected, slow_rate, decay_margin)}
     return model
+
+
+# samples per shooting window of the selection's short-span check (IdentConfig.selection_window_excess):
+# the first growing stage's default, 1 ms at 10 kHz, about 1.5 periods of the LCL resonances
+SELECTION_WINDOW = 10
+
+
+def window_misfits(eligible: list, costs: dict, excess: float, window: int = SELECTION_WINDOW) -> list:
+    """The ``eligible`` names whose short-window cost (``costs``: name -> :func:`.trajfit.window_costs`
+    over windows of ``window`` samples) is above the lowest finite one among them by more than ``excess``
+    as a chi-square, ``2 (window + 1)`` times the difference (an infinite or missing cost counts as
+    above where some other is finite). None where ``excess`` is 0 or inf, or no eligible cost is finite."""
+    finite = [costs[name] for name in eligible if np.isfinite(costs.get(name, np.nan))]
+    if not finite or not 0 < excess < np.inf:
+        return []
+    best = min(finite)
+    return [name for name in eligible if name in costs and not 2 * (window + 1) * (costs[name] - best) <= excess]
 
 
 def _floor_cut(floor: float, reference: float, floor_tolerance: float) -> float:
@@ -606,13 +636,15 @@ def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: flo
 def _configured_selection(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig,
                           verdicts: dict, hold: float, tolerance: float | None = None,
                           noise_floor: float | None = None, refinement_expected: bool = False,
-                          tolerance_floor: float | None = None) -> ExplicitModel:
+                          tolerance_floor: float | None = None, window_costs: dict | None = None) -> ExplicitModel:
     """:func:`_selected` with the selection settings of ``cfg`` (``tolerance``: its
     ``selection_tolerance`` unless given; the preliminary model before refinement takes 0;
     ``tolerance_floor``: the noisy scoring records' noise floor, which ``selection_floor_tolerance``
     measures from where the configured tolerance applies, None on clean records;
     ``noise_floor``: the scoring records', for the warning on a model far worse than their noise;
-    ``refinement_expected``: for the warning on a model from before the refinement)."""
+    ``refinement_expected``: for the warning on a model from before the refinement;
+    ``window_costs``: the candidates' short-window costs where the records are low-SNR, judged by
+    ``selection_window_excess``)."""
     return _selected(template, candidates, scores,
                      tolerance=cfg.selection_tolerance if tolerance is None else tolerance, verdicts=verdicts,
                      unstable_rate=cfg.selection_unstable_rate, hold=hold,
@@ -621,7 +653,8 @@ def _configured_selection(template: ExplicitModel, candidates: dict, scores: dic
                      noise_ratio=cfg.selection_warn_noise_ratio, noise_margin=cfg.selection_warn_noise_margin,
                      refinement_expected=refinement_expected, rest_offset=cfg.selection_rest_offset,
                      tolerance_floor=tolerance_floor if tolerance is None else None,
-                     floor_tolerance=cfg.selection_floor_tolerance, decay_margin=cfg.selection_decay_margin)
+                     floor_tolerance=cfg.selection_floor_tolerance, decay_margin=cfg.selection_decay_margin,
+                     window_costs=window_costs, window_excess=cfg.selection_window_excess)
 
 
 def _would_choose(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig, verdicts: dict,

@@ -1363,3 +1363,47 @@ def backward_elimination(coefficients: np.ndarray, hessian: np.ndarray, support:
         flat[support] = np.where(best[2], best[1] / d, 0.0)
         out.append((best[0], flat.reshape(coefficients.shape)))
     return out
+
+
+def window_costs(models: dict, train: Dataset, window: int, weights=None, substeps: int = 2) -> dict:
+    """Each model's multiple-shooting cost on ``train`` over windows of ``window`` samples, its
+    coefficients as they are and each window's start state fitted (:meth:`_ShootingProblem.fit_starts`):
+    how well it follows the records over short spans, where the fast modes (the LCL resonances) show,
+    in the units of :meth:`TrajectoryFitter.fit`'s cost (half the squared misfit in noise units over
+    ``window + 1``: ``2 (window + 1)`` times a difference of two such costs is a chi-square).
+
+    Parameters
+    ----------
+    models : dict
+        Name -> :class:`~pisml_ros.model.ExplicitModel`, over the records' states and inputs.
+    train : Dataset
+    window : int
+        Samples per shooting window.
+    weights : ndarray, shape (n_states,), optional
+        Residual weight per state (1/noise std); :func:`.noise.residual_weights` of ``train`` if None.
+
+    Returns
+    -------
+    dict
+        Name -> cost (inf where a window's run blows up).
+    """
+    import torch
+
+    from ..model.expressions import term_set
+    from .noise import residual_weights
+
+    weights = residual_weights(train) if weights is None else weights
+    costs = {}
+    for name, model in models.items():
+        coefficients = np.asarray(model.coefficients, dtype=float)
+        fitter = TrajectoryFitter(term_set(model.terms, tuple(model.state_names) + tuple(model.input_names)),
+                                  model.n_states, train.dt, window=window, substeps=substeps, weights=weights)
+        problem = _ShootingProblem(fitter, coefficients, coefficients != 0.0, train, None, 0.0, 5)
+        try:
+            theta = torch.tensor(np.concatenate([coefficients.ravel()[problem.idx] / problem.scale,
+                                                 np.zeros(problem.n_levels)]))
+            starts = problem.fit_starts(theta, torch.zeros((problem.n_windows, model.n_states)))
+            costs[name] = float(problem.cost(theta, starts))
+        finally:
+            problem.close()
+    return costs
