@@ -35,8 +35,8 @@ from .limiter import fit_reference_limit
 from .noise import input_noise_std, piecewise_constant_inputs
 from .roles import SignalRoles
 from .selection import (LONG_BRANCH_SUFFIX, SELECTION_WINDOW, _any_beats_hold, _configured_selection,
-                        _noisy_choice_needs_retry, _prune_round_name, _refinement_family, _refinement_suffices, _unpruned_refinement_lost,
-                        _with_equilibria, _would_choose, _would_choose_misfits)
+                        _noisy_choice_needs_retry, _prune_round_name, _refinement_family, _refinement_suffices,
+                        _unpruned_refinement_lost, _with_equilibria, _would_choose, _would_choose_misfits)
 from .trajfit import SHOOTING_PARTS_MAX, blas_threads, window_costs
 
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
