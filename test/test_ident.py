@@ -2571,7 +2571,8 @@ def test_window_costs_tell_a_lost_resonance_from_the_records_short_spans():
 def test_selection_passes_over_a_family_the_short_windows_reject_on_low_snr_records(train):
     """``selection_window_excess``: a family that scores best run freely but whose short-window cost is
     far above another's does not compete; within the excess, or without costs, the scores decide.
-    Low-SNR records (``low_snr_noise_floor``) also refine in the longer growing windows."""
+    Which records are low-SNR (``low_snr_noise_floor``), and the option to refine them in longer
+    growing windows (``refine_growing_windows_low_snr``)."""
     from pisml_ros.ident.estimators import growing_windows, low_snr
     from pisml_ros.ident.selection import _configured_selection, _selected
     from pisml_ros.plant.noise import add_measurement_noise
@@ -2600,16 +2601,16 @@ def test_selection_passes_over_a_family_the_short_windows_reject_on_low_snr_reco
     assert chosen(window_costs=costs, window_excess=1500.0)["chosen"] == "pruned +0.1 % with growing prior"
     assert chosen(window_costs=costs)["chosen"] == "pruned +0.1 % with growing prior"  # excess inf: off
     cfg = IdentConfig()
-    assert cfg.selection_window_excess == 300.0 and cfg.refine_growing_windows_low_snr == (20, 50, 100)
+    assert cfg.selection_window_excess == 300.0 and cfg.refine_growing_windows_low_snr == ()
     configured = _configured_selection(candidates["refined"], candidates, scores, cfg, {}, np.inf, window_costs=costs)
     assert configured.metadata["selection"]["chosen"] == "pruned +0.1 %"
-    # which records are low-SNR: the protocol's at 30 dB, not at 40 dB
-    assert low_snr(add_measurement_noise(train, 30.0, seed=1), cfg)
-    assert growing_windows(add_measurement_noise(train, 30.0, seed=1), cfg) == (20, 50, 100)
-    assert growing_windows(add_measurement_noise(train, 40.0, seed=1), cfg) == (10, 25, 50)
-    assert growing_windows(train, cfg) == (10, 25, 50)
-    off = IdentConfig.from_mapping({"refine_growing_windows_low_snr": ""})
-    assert growing_windows(add_measurement_noise(train, 30.0, seed=1), off) == (10, 25, 50)
+    # which records are low-SNR: the protocol's at 30 dB, not at 40 dB nor clean ones
+    at30, at40 = add_measurement_noise(train, 30.0, seed=1), add_measurement_noise(train, 40.0, seed=1)
+    assert low_snr(at30, cfg) and not low_snr(at40, cfg) and not low_snr(train, cfg)
+    assert growing_windows(at30, cfg) == (10, 25, 50)  # the option is off by default
+    longer = IdentConfig.from_mapping({"refine_growing_windows_low_snr": "20,50,100"})
+    assert growing_windows(at30, longer) == (20, 50, 100)
+    assert growing_windows(at40, longer) == (10, 25, 50) and growing_windows(train, longer) == (10, 25, 50)
     with pytest.raises(ConfigError, match="refine_growing_windows_low_snr"):
         IdentConfig.from_mapping({"refine_growing_windows_low_snr": "20,50"})
     with pytest.raises(ConfigError, match="selection_window_excess"):

@@ -56,3 +56,19 @@ def test_the_replay_names_a_file_that_is_no_candidate_table(tmp_path, capsys):
     with pytest.raises(SystemExit):
         selection_replay.main([str(bad)])
     assert f"{bad}: not a bench/candidates.py --out table (KeyError" in capsys.readouterr().err
+
+
+def test_the_replay_judges_the_short_window_costs_a_low_snr_fit_recorded(tmp_path, capsys):
+    """A fit on low-SNR records keeps its candidates' short-window costs in the selection record: the
+    replay applies ``selection_window_excess`` to them as the fit did, and not where it is switched off."""
+    path = _table(tmp_path)
+    table = json.loads(path.read_text())
+    # the margin off, the better score wins unless the short windows reject it (22 x 50 = 1100 > 300)
+    table["selection"]["window_costs"] = {"pruned +0.1 % x3": 2900.0, "pruned +0.1 % x3 at long windows": 2850.0}
+    path.write_text(json.dumps(table))
+    assert selection_replay.main([str(path), "--set", "selection_decay_margin=0"]) == 0
+    judged = capsys.readouterr().out
+    assert "'pruned +0.1 % x3 at long windows' 0.269 / 0.546 %" in judged
+    assert selection_replay.main([str(path), "--set", "selection_decay_margin=0",
+                                  "--set", "selection_window_excess=0"]) == 0
+    assert "'pruned +0.1 % x3' 0.278 / 1.224 %" in capsys.readouterr().out

@@ -195,14 +195,21 @@ class IdentConfig:
     # `--set refine_growing_evaluations=15,10,10` gives the old models in about two thirds of the time)
     refine_growing_evaluations: tuple = (30, 20, 20)
     # the growing stages' windows on low-SNR records (the training records' noise floor,
-    # noise.noise_floor_error, at or above low_snr_noise_floor %; empty: refine_growing_windows there
-    # too). At 30 dB the windows of 10 samples leave the first start's family with one of the two LCL
-    # resonances lost (W ~1500 at ug 0.8), and the selection takes the rescue's family; from windows of
-    # 20 the first family keeps both (stop 85, recordings 185 and 187: best candidates 0.90-3.2 % IOD
-    # against 2.0-8.8 %), but the rescue's family, with a resonance lost, scores better run freely,
-    # so the windows alone chose no better (stop 85: 0 of 8 either way on 184-191, OOD median 4.86
-    # against 5.51 %). Stop 94 took them with selection_window_excess, which passes that family over
-    refine_growing_windows_low_snr: tuple = (20, 50, 100)
+    # noise.noise_floor_error, at or above low_snr_noise_floor %; empty, the default: refine_growing_windows
+    # there too). Why tried: at 30 dB the windows of 10 samples can leave the first start's family with one
+    # of the two LCL resonances lost (W ~1500 at ug 0.8); from windows of 20 it keeps both more often (stop
+    # 85, recordings 185 and 187: best candidates 0.90-3.2 % IOD against 2.0-8.8 %), but alone they chose
+    # no better (stop 85: 0 of 8 either way on 184-191, OOD median 4.86 against 5.51 %). Stop 94, with
+    # selection_window_excess, 20,50,100 on unseen 296-303 at 30 dB (`bench/setting_sweep.py run --name
+    # snr30-unseen-296-303-s94 --seeds 296-303 --noise 30`, against `...-s94-before`, both options off):
+    # better on 296-298 and 303 (297 1.548 / 25.39 -> 0.878 / 4.769 %, 298 1.432 / 2.018 -> 0.631 /
+    # 0.514 %, 303 1.378 / 5.326 % W 1318 spurious -> 0.375 / 1.744 % W 22), worse on 299-302 (299
+    # 1.684 / 7.681 -> 2.562 / 49.35 %, 300 1.280 / 0.551 -> 0.791 / 1.746 %, 301 0.873 / 0.913 ->
+    # 1.586 / 4.488 % spurious at 0.2, 302 W 12 -> 1495); IOD median 1.405 -> 1.107 %, OOD median
+    # 4.98 -> 4.63 %, W above 100 on 4 of 8 either way: not taken. On 299-302 no candidate was taken
+    # out by the short windows: the first family itself came out worse (on 296, 299 and 302 none of
+    # it reproduced the records better than holding their first states)
+    refine_growing_windows_low_snr: tuple = ()
     # the noise floor (%, noise.noise_floor_error of the training records) from which the records
     # count as low-SNR (refine_growing_windows_low_snr, selection_window_excess); inf: never. Measured
     # on the protocol: 40 dB 1.5-2.0 % (2.7-2.9 % with the small-signal steps at ug 1.0), 30 dB 4.9-6.4 %
@@ -889,14 +896,18 @@ class IdentConfig:
     # over windows of SELECTION_WINDOW samples (coefficients fixed, each window's start state fitted:
     # trajfit.window_costs) exceeds the lowest one's by more than this, as a chi-square (2 (window + 1)
     # times the cost difference: the squared misfit in noise units), do not compete; 0 or inf: off.
-    # Why (stop 94, 30 dB, recordings 184-191 with refine_growing_windows_low_snr): the rescue's
-    # family had lost one of the two LCL resonances (W 1300-1470 at ug 0.8, one pair of modes at
-    # -650 ± 9150j 1/s gone to the real axis or to -730 ± 740j) and reproduced the records run freely
-    # better (185: 4.9 against 7.6-51 %; 187: 5.2-9.7 against 6.4-48 %), but the 1 ms windows
+    # Why (stop 94, 30 dB, candidate tables of 184-191 with refine_growing_windows_low_snr=20,50,100):
+    # the rescue's family had lost one of the two LCL resonances (W 1300-1470 at ug 0.8, one pair of
+    # modes at -650 ± 9150j 1/s gone to the real axis or to -730 ± 740j) and reproduced the records run
+    # freely better (185: 4.9 against 7.6-51 %; 187: 5.2-9.7 against 6.4-48 %), but the 1 ms windows
     # 550-2200 worse, where the first family's candidates lie within 110 of each other with 60-230
-    # coefficients. Replayed on the eight candidate tables: 185 1.168 / 6.613 % (W 1412) -> 0.928 /
-    # 1.745 % (W 35), 187 2.274 / 7.005 % (W 1314) -> 1.265 / 2.169 % (W 19), the other six as
-    # chosen (150 also changes 189, 1.259 / 1.402 -> 1.133 / 0.778 %; 300-1000 the same as 300)
+    # coefficients. Replayed there: 185 1.168 / 6.613 % (W 1412) -> 0.928 / 1.745 % (W 35), 187
+    # 2.274 / 7.005 % (W 1314) -> 1.265 / 2.169 % (W 19), the other six as chosen (150 also changes 189,
+    # 1.259 / 1.402 -> 1.133 / 0.778 %; 600 and 1000 as 300). With the default windows, fitted
+    # (`bench/candidates.py --seed S --noise 30`, 296-303 unseen): it changes 303 alone, 1.378 / 5.326 %
+    # (219 coefficients, W 1318, spurious at ug 0.2 and 0.4) -> 1.192 / 1.736 % (77, W 32, none), the
+    # table's best candidate; the other seven chose as without it (`...-s94-before`). The 40 dB
+    # protocol (floor 1.5-2.9 %) never runs it: its fits are as before to the bit (224's table)
     selection_window_excess: float = 300.0
     # on noisy records, where the chosen model's slowest mode at the small-signal records' rest points
     # decays slower than this (1/s) and eligible candidates within selection_floor_tolerance of the
