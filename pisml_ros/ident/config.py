@@ -201,7 +201,8 @@ class IdentConfig:
     # 85, recordings 185 and 187: best candidates 0.90-3.2 % IOD against 2.0-8.8 %), but alone they chose
     # no better (stop 85: 0 of 8 either way on 184-191, OOD median 4.86 against 5.51 %). Stop 94, with
     # selection_window_excess, 20,50,100 on unseen 296-303 at 30 dB (`bench/setting_sweep.py run --name
-    # snr30-unseen-296-303-s94 --seeds 296-303 --noise 30`, against `...-s94-before`, both options off):
+    # snr30-lowsnr-windows-296-303-s94 --seeds 296-303 --noise 30 --set refine_growing_windows_low_snr=20,50,100`,
+    # against `snr30-unseen-296-303-s94-before`, both options off):
     # better on 296-298 and 303 (297 1.548 / 25.39 -> 0.878 / 4.769 %, 298 1.432 / 2.018 -> 0.631 /
     # 0.514 %, 303 1.378 / 5.326 % W 1318 spurious -> 0.375 / 1.744 % W 22), worse on 299-302 (299
     # 1.684 / 7.681 -> 2.562 / 49.35 %, 300 1.280 / 0.551 -> 0.791 / 1.746 %, 301 0.873 / 0.913 ->
@@ -906,8 +907,10 @@ class IdentConfig:
     # 1.259 / 1.402 -> 1.133 / 0.778 %; 600 and 1000 as 300). With the default windows, fitted
     # (`bench/candidates.py --seed S --noise 30`, 296-303 unseen): it changes 303 alone, 1.378 / 5.326 %
     # (219 coefficients, W 1318, spurious at ug 0.2 and 0.4) -> 1.192 / 1.736 % (77, W 32, none), the
-    # table's best candidate; the other seven chose as without it (`...-s94-before`). The 40 dB
-    # protocol (floor 1.5-2.9 %) never runs it: its fits are as before to the bit (224's table)
+    # table's best candidate; the other seven chose as without it (`snr30-unseen-296-303-s94-before`;
+    # the rows: bench/sweeps/snr30-window-check-s94.json); on 184-191 (the
+    # same, stop 84's sweep's recordings) it took out 0-7 candidates a fit and changed no choice. The
+    # 40 dB protocol (floor 1.5-2.9 %) never runs it: its fits are as before to the bit (224's table)
     selection_window_excess: float = 300.0
     # on noisy records, where the chosen model's slowest mode at the small-signal records' rest points
     # decays slower than this (1/s) and eligible candidates within selection_floor_tolerance of the
