@@ -213,7 +213,8 @@ class IdentConfig:
     refine_growing_windows_low_snr: tuple = ()
     # the noise floor (%, noise.noise_floor_error of the training records) from which the records
     # count as low-SNR (refine_growing_windows_low_snr, selection_window_excess); inf: never. Measured
-    # on the protocol: 40 dB 1.5-2.0 % (2.7-2.9 % with the small-signal steps at ug 1.0), 30 dB 4.9-6.4 %
+    # (stop 94, training records): 40 dB 1.2-2.0 % (the protocol, and the 5 kHz, 20 kHz, noisy-input,
+    # small-signal-at-ug-1.0 and 8x60 ms scenarios), 35 dB 2.2-2.6 %, 30 dB 4.3-5.2 %
     low_snr_noise_floor: float = 3.5
     # at most this many windows per growing-window stage, evenly spread over the records (0 or an
     # empty list: all of them); a stage's Gauss-Newton pass is linear in its windows. Stop 67 (to buy
@@ -910,7 +911,7 @@ class IdentConfig:
     # table's best candidate; the other seven chose as without it (`snr30-unseen-296-303-s94-before`;
     # the rows: bench/sweeps/snr30-window-check-s94.json); on 184-191 (the
     # same, stop 84's sweep's recordings) it took out 0-7 candidates a fit and changed no choice. The
-    # 40 dB protocol (floor 1.5-2.9 %) never runs it: its fits are as before to the bit (224's table)
+    # 40 dB protocol (floor 1.2-2.0 %) never runs it: its fits are as before to the bit (224's table)
     selection_window_excess: float = 300.0
     # on noisy records, where the chosen model's slowest mode at the small-signal records' rest points
     # decays slower than this (1/s) and eligible candidates within selection_floor_tolerance of the
