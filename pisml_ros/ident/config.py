@@ -911,7 +911,9 @@ class IdentConfig:
     # table's best candidate; the other seven chose as without it (`snr30-unseen-296-303-s94-before`;
     # the rows: bench/sweeps/snr30-window-check-s94.json); on 184-191 (the
     # same, stop 84's sweep's recordings) it took out 0-7 candidates a fit and changed no choice. The
-    # 40 dB protocol (floor 1.2-2.0 %) never runs it: its fits are as before to the bit (224's table)
+    # 40 dB protocol (floor 1.2-2.0 %) never runs it: its fits are as before to the bit (224's table).
+    # Forced on at 40 dB (`bench/candidates.py --seed S --noise 40 --set low_snr_noise_floor=0`, 224-239):
+    # it took out one candidate on 231 and one on 235, changed no choice (10 of 16 within either way)
     selection_window_excess: float = 300.0
     # on noisy records, where the chosen model's slowest mode at the small-signal records' rest points
     # decays slower than this (1/s) and eligible candidates within selection_floor_tolerance of the
