@@ -295,7 +295,7 @@ class TrajectoryFitter:
     def _solve(self, torch, problem, coef0, max_nfev, on_evaluation, keep_going, fit_starts_first,
                ftol, damping) -> FitResult:
         started = time.monotonic()
-        theta = torch.tensor(np.concatenate([coef0.ravel()[problem.idx] / problem.scale, np.zeros(problem.n_levels)]))
+        theta = problem.parameters(coef0)
         z = torch.zeros((problem.n_windows, self.n_states))
         if fit_starts_first:
             z = problem.fit_starts(theta, z)
@@ -773,6 +773,12 @@ class _ShootingProblem:
         self.sqrt_le = float(np.sqrt(lambda_eq))
         self.stability_margin = float(stability_margin)
         self.sqrt_lj = float(np.sqrt(lambda_jac))
+
+    def parameters(self, coefficients):
+        """θ of a coefficient matrix of the problem's shape: its support entries over ``scale``, and every
+        held level's error at zero."""
+        return self.torch.tensor(np.concatenate([np.asarray(coefficients).ravel()[self.idx] / self.scale,
+                                                 np.zeros(self.n_levels)]))
 
     def coefficients(self, theta) -> np.ndarray:
         out = np.zeros(int(np.prod(self.shape)))
@@ -1400,8 +1406,7 @@ def window_costs(models: dict, train: Dataset, window: int, weights=None, subste
                                   model.n_states, train.dt, window=window, substeps=substeps, weights=weights)
         problem = _ShootingProblem(fitter, coefficients, coefficients != 0.0, train, None, 0.0, 5)
         try:
-            theta = torch.tensor(np.concatenate([coefficients.ravel()[problem.idx] / problem.scale,
-                                                 np.zeros(problem.n_levels)]))
+            theta = problem.parameters(coefficients)
             starts = problem.fit_starts(theta, torch.zeros((problem.n_windows, model.n_states)))
             costs[name] = float(problem.cost(theta, starts))
         finally:
