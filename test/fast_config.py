@@ -7,6 +7,7 @@ stages take one RK4 step a sample (stop 85, stop 83's machine: a 40 dB fit 32 s 
 those settings set their own).
 """
 FAST = {"epochs": 4, "batch_windows": 16, "distill_samples": 2000, "refine_max_nfev": 2, "refine_max_windows": 8,
-        "refine_growing_evaluations": "2,2,2", "refine_polish_evaluations": "2,2", "refine_long_branch_evaluations": 2,
+        "refine_growing_evaluations": "2,2,2", "refine_growing_evaluations_low_snr": "2,2,2,2",
+        "refine_polish_evaluations": "2,2", "refine_long_branch_evaluations": 2,
         "refine_polish_windows": "25,50", "refine_growing_substeps": 1, "refine_max_step": 0,
         "refine_prune_rounds": 1, "distill_max_terms": 2}

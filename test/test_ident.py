@@ -2571,9 +2571,9 @@ def test_window_costs_tell_a_lost_resonance_from_the_records_short_spans():
 def test_selection_passes_over_a_family_the_short_windows_reject_on_low_snr_records(train):
     """``selection_window_excess``: a family that scores best run freely but whose short-window cost is
     far above another's does not compete; within the excess, or without costs, the scores decide.
-    Which records are low-SNR (``low_snr_noise_floor``), and the option to refine them in longer
-    growing windows (``refine_growing_windows_low_snr``)."""
-    from pisml_ros.ident.estimators import growing_windows, low_snr
+    Which records are low-SNR (``low_snr_noise_floor``), and the growing windows their second
+    refinement pass takes (``refine_growing_windows_low_snr``)."""
+    from pisml_ros.ident.estimators import growing_stages, low_snr
     from pisml_ros.ident.selection import _configured_selection, _selected
     from pisml_ros.plant.noise import add_measurement_noise
 
@@ -2601,17 +2601,64 @@ def test_selection_passes_over_a_family_the_short_windows_reject_on_low_snr_reco
     assert chosen(window_costs=costs, window_excess=1500.0)["chosen"] == "pruned +0.1 % with growing prior"
     assert chosen(window_costs=costs)["chosen"] == "pruned +0.1 % with growing prior"  # excess inf: off
     cfg = IdentConfig()
-    assert cfg.selection_window_excess == 300.0 and cfg.refine_growing_windows_low_snr == ()
+    assert cfg.selection_window_excess == 300.0 and cfg.refine_growing_windows_low_snr == (5, 10, 25, 50)
     configured = _configured_selection(candidates["refined"], candidates, scores, cfg, {}, np.inf, window_costs=costs)
     assert configured.metadata["selection"]["chosen"] == "pruned +0.1 %"
     # which records are low-SNR: the protocol's at 30 dB, not at 40 dB nor clean ones
     at30, at40 = add_measurement_noise(train, 30.0, seed=1), add_measurement_noise(train, 40.0, seed=1)
     assert low_snr(at30, cfg) and not low_snr(at40, cfg) and not low_snr(train, cfg)
-    assert growing_windows(at30, cfg) == (10, 25, 50)  # the option is off by default
-    longer = IdentConfig.from_mapping({"refine_growing_windows_low_snr": "20,50,100"})
-    assert growing_windows(at30, longer) == (20, 50, 100)
-    assert growing_windows(at40, longer) == (10, 25, 50) and growing_windows(train, longer) == (10, 25, 50)
-    with pytest.raises(ConfigError, match="refine_growing_windows_low_snr"):
-        IdentConfig.from_mapping({"refine_growing_windows_low_snr": "20,50"})
+    assert growing_stages(at30, cfg) == ([(5, 20), (10, 30), (25, 20), (50, 20)], ())
+    default = ([(10, 30), (25, 20), (50, 20)], ())
+    assert growing_stages(at40, cfg) == default and growing_stages(train, cfg) == default
+    longer = IdentConfig.from_mapping({"refine_growing_windows_low_snr": "20,50,100",
+                                       "refine_growing_evaluations_low_snr": "", "refine_growing_max_windows": "0,9,0"})
+    # (the default stages' evaluations where the low-SNR ones are not given; their window counts default stages' only)
+    assert growing_stages(at30, longer) == ([(20, 30), (50, 20), (100, 20)], ())
+    assert growing_stages(at40, longer) == (default[0], (0, 9, 0))
+    off = IdentConfig.from_mapping({"refine_growing_windows_low_snr": "", "refine_growing_evaluations_low_snr": ""})
+    assert growing_stages(at30, off) == default
+    for bad in ({"refine_growing_windows_low_snr": "20,50"},
+                {"refine_growing_windows_low_snr": "20,50", "refine_growing_evaluations_low_snr": "5,5,5"},
+                {"refine_growing_windows_low_snr": "", "refine_growing_evaluations_low_snr": "5"}):
+        with pytest.raises(ConfigError, match="refine_growing_windows_low_snr"):
+            IdentConfig.from_mapping(bad)
     with pytest.raises(ConfigError, match="selection_window_excess"):
         IdentConfig.from_mapping({"selection_window_excess": -1})
+
+
+@pytest.mark.slow
+def test_low_snr_records_are_refined_again_in_their_own_growing_windows_and_both_passes_compete(train, small):
+    """On low-SNR records (30 dB here) the refinement runs twice: in the default growing windows and in
+    ``refine_growing_windows_low_snr``; the second pass's candidates, renamed with LOW_SNR_SUFFIX,
+    compete in the selection, its records sit under ``low_snr_pass``, and the estimator's configuration
+    is left as it was given."""
+    from pisml_ros.ident.estimators import LOW_SNR_SUFFIX
+    from pisml_ros.ident.selection import _refinement_family
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    cfg = IdentConfig.from_mapping({**FAST, "refine_growing_windows_low_snr": "5,10",
+                                    "refine_growing_evaluations_low_snr": "2,2", "limiter_search": False})
+    est = make_estimator("pisml", cfg)
+    est.fit(add_measurement_noise(train, 30.0, seed=1), add_measurement_noise(small, 30.0, seed=2))
+    assert est.config is cfg and cfg.refine_growing_windows_low_snr == (5, 10)
+    second = sorted(name for name in est.candidates_ if name.endswith(LOW_SNR_SUFFIX))
+    first = sorted(name for name in est.candidates_ if name.startswith(("refined", "pruned"))
+                   and not name.endswith(LOW_SNR_SUFFIX))
+    assert "refined" + LOW_SNR_SUFFIX in second and "refined" in first
+    windows = {name: est.candidates_[name].metadata["refinement"].get("growing_windows", {}).get("windows")
+               for name in first + second if name.startswith("refined")}
+    assert windows["refined"] == [10, 25, 50] and windows["refined" + LOW_SNR_SUFFIX] == [5, 10]
+    # one family each: a pruned model of the second pass is judged against that pass's refined model
+    assert _refinement_family("pruned +0.1 %" + LOW_SNR_SUFFIX) == LOW_SNR_SUFFIX
+    meta = est.explicit_model_.metadata
+    assert meta["low_snr_pass"]["windows"] == [5, 10] and meta["low_snr_pass"]["suffix"] == LOW_SNR_SUFFIX
+    assert "refinement_starts" in meta["low_snr_pass"] and "refinement_starts" in meta
+    # both passes' candidates were scored and judged by the short windows (low-SNR records)
+    selection = meta["selection"]
+    assert set(second) <= set(selection["training_error_pct"])
+    assert est.metrics_["refinement_passes"] == 2.0
+    # 40 dB records: one pass
+    once = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
+                                            add_measurement_noise(small, 40.0, seed=2))
+    assert not any(name.endswith(LOW_SNR_SUFFIX) for name in once.candidates_)
+    assert "low_snr_pass" not in once.explicit_model_.metadata and once.metrics_["refinement_passes"] == 1.0

@@ -210,7 +210,10 @@ class IdentConfig:
     # 4.98 -> 4.63 %, W above 100 on 4 of 8 either way: not taken. On 299-302 no candidate was taken
     # out by the short windows: the first family itself came out worse (on 296, 299 and 302 none of
     # it reproduced the records better than holding their first states)
-    refine_growing_windows_low_snr: tuple = ()
+    refine_growing_windows_low_snr: tuple = (5, 10, 25, 50)
+    # evaluations per stage of refine_growing_windows_low_snr (empty: refine_growing_evaluations, which
+    # must then have as many stages)
+    refine_growing_evaluations_low_snr: tuple = (20, 30, 20, 20)
     # the noise floor (%, noise.noise_floor_error of the training records) from which the records
     # count as low-SNR (refine_growing_windows_low_snr, selection_window_excess); inf: never. Measured
     # (stop 94, training records): 40 dB 1.2-2.0 % (the protocol, and the 5 kHz, 20 kHz, noisy-input,
@@ -1055,11 +1058,17 @@ class IdentConfig:
         if any(b < 0 for b in self.refine_prune_budgets):
             raise ConfigError(f"identification config: refine_prune_budgets must be >= 0, got "
                               f"{list(self.refine_prune_budgets)}")
-        low = self.refine_growing_windows_low_snr
-        if low and (len(low) != len(self.refine_growing_evaluations) or any(v <= 0 for v in low)):
+        low, low_evaluations = self.refine_growing_windows_low_snr, self.refine_growing_evaluations_low_snr
+        if low_evaluations and not low:
+            raise ConfigError(f"identification config: refine_growing_evaluations_low_snr {list(low_evaluations)} "
+                              f"needs refine_growing_windows_low_snr (empty)")
+        evaluations = low_evaluations or self.refine_growing_evaluations
+        if low and (len(low) != len(evaluations) or any(v <= 0 for v in (*low, *evaluations))):
             raise ConfigError(f"identification config: refine_growing_windows_low_snr must be empty or one positive "
-                              f"window per growing stage (refine_growing_evaluations "
-                              f"{list(self.refine_growing_evaluations)}), got {list(low)}")
+                              f"window per stage of refine_growing_evaluations_low_snr (or, empty, of "
+                              f"refine_growing_evaluations) {list(evaluations)}, got {list(low)}")
+        self.refine_growing_windows_low_snr = tuple(int(v) for v in low)
+        self.refine_growing_evaluations_low_snr = tuple(int(v) for v in low_evaluations)
         for stages in ("growing", "polish"):
             windows, evaluations = (getattr(self, f"refine_{stages}_{k}") for k in ("windows", "evaluations"))
             if windows and (len(windows) != len(evaluations) or any(v <= 0 for v in (*windows, *evaluations))):
@@ -1124,6 +1133,7 @@ class IdentConfig:
         out["refine_prune_budgets"] = list(self.refine_prune_budgets)
         out["refit_budgets"] = list(self.refit_budgets)
         for key in ("refine_growing_windows", "refine_growing_windows_low_snr", "refine_growing_evaluations",
+                    "refine_growing_evaluations_low_snr",
                     "refine_growing_max_windows", "refine_polish_windows", "refine_polish_evaluations",
                     "selection_equilibrium_grid"):
             out[key] = list(getattr(self, key))

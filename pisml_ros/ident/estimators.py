@@ -42,6 +42,8 @@ from .trajfit import SHOOTING_PARTS_MAX, blas_threads, window_costs
 METHODS = ("pisml", "pisml-nojac", "std-sindy", "mod-sindy", "node")
 # the candidate name of the backbone fitted with the noise correction (the second refinement start)
 NOISE_COMPENSATED = "noise-compensated backbone"
+# the names of the candidates the low-SNR windows' pass refined end so (IdentConfig.refine_growing_windows_low_snr)
+LOW_SNR_SUFFIX = " in low-SNR windows"
 
 
 class IdentificationCancelled(Exception):
@@ -382,92 +384,127 @@ class PISML(_Estimator):
             preliminary.metadata["stage"] = "explicit (before refinement)"
             self._emit("explicit (before refinement)", 0.7, model=preliminary)
             started = time.monotonic()
-            starts = _refinement_starts(candidates, scores, explicit.metadata.get("reference_points") or [], verdicts)
-            explicit.metadata["refinement_starts"] = list(starts)
+            # on low-SNR records a second pass refines the same starts in the low-SNR growing windows
+            # (IdentConfig.refine_growing_windows_low_snr); its families compete, renamed (LOW_SNR_SUFFIX)
+            passes = [(cfg, "")]
+            if noisy and cfg.refine_growing_windows_low_snr and low_snr(train, cfg):
+                passes = [(dataclasses.replace(cfg, refine_growing_windows_low_snr=(),
+                                               refine_growing_evaluations_low_snr=()), ""),
+                          (dataclasses.replace(cfg, limiter_search=False), LOW_SNR_SUFFIX)]
+            first_pass, configured, unrefined = (candidates, scores, verdicts), cfg, set(candidates)
+            self.metrics_["refinement_passes"] = float(len(passes))
+            try:
+                for cfg, pass_suffix in passes:
+                    self.config = cfg
+                    if pass_suffix:
+                        # the second pass sees the candidates from before the refinement only, as a fit would
+                        candidates = {name: model for name, model in first_pass[0].items() if name in unrefined}
+                        scores = {name: first_pass[1][name] for name in candidates}
+                        verdicts, early, limit_search = {}, None, None
+                        metadata_before = explicit.metadata.copy()
+                    starts = _refinement_starts(candidates, scores, explicit.metadata.get("reference_points") or [],
+                                                verdicts)
+                    explicit.metadata["refinement_starts"] = list(starts)
 
-            def refine_from(start, progress, growing=None, config=None):
-                return refine_model(candidates[start], scores[start], progress, growing, config)
+                    def refine_from(start, progress, growing=None, config=None):
+                        return refine_model(candidates[start], scores[start], progress, growing, config)
 
-            def add(k, refined, errors, suffix=None, start=None):
-                if suffix is None:
-                    suffix = "" if k == 0 else f" from {starts[k]}"
-                for name, model in refined.items():
-                    model.metadata["refinement"]["start"] = start or starts[k]
-                    candidates[name + suffix] = model
-                scores.update({name + suffix: error for name, error in errors.items()})  # refine_from scored all
+                    def add(k, refined, errors, suffix=None, start=None):
+                        if suffix is None:
+                            suffix = "" if k == 0 else f" from {starts[k]}"
+                        for name, model in refined.items():
+                            model.metadata["refinement"]["start"] = start or starts[k]
+                            candidates[name + suffix] = model
+                        # (refine_from scored them all)
+                        scores.update({name + suffix: error for name, error in errors.items()})
 
-            # the windows of one start are shared out over the threads only where its terms'
-            # gradients are thread-safe (TermSet.thread_safe_gradient): else the two starts side by
-            # side are quicker
-            shared = term_set(candidates[starts[0]].terms, signals).thread_safe_gradient()
-            # on clean data the second half of the refinement's progress is kept for the fallback below
-            share = 0.28 if noisy or not cfg.refine_growing_windows else 0.14
-            running = []
-            if early is not None:
-                if starts[1:] == [NOISE_COMPENSATED]:
-                    running = [early[1]]
-                else:  # (not met: the same verdicts and score chose it early)
-                    early[1].close()
-            if _both_starts(cfg) or len(starts) == 1 or not shared:
-                outcomes = _side_by_side(refine_from, starts[:len(starts) - len(running)],
-                                         lambda fraction, losses: self._emit("refinement", 0.7 + share * fraction,
-                                                                             losses=losses),
-                                         after=limit_search.run if limit_search is not None else None, running=running)
-                for k, outcome in enumerate(outcomes):
-                    add(k, *outcome)
-                threads = _threads_for(len(starts))
-                if len(starts) > 1:
-                    # (on one thread, where the gradients are not thread-safe, the two ran one after the other)
-                    explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": True,
-                                                                    "side_by_side": threads > 1,
-                                                                    "early": bool(running)}
-                if running:
-                    self.metrics_["refinement_early_seconds"] = running[0].seconds
-                self.metrics_["refinement_threads"] = float(threads)
-            else:
-                # the first start alone on every thread; the second only where the first's family
-                # does not give a model consistent with the records' rest points (IdentConfig.refine_starts).
-                # The limit search needs the records alone: it runs beside that refinement, the BLAS
-                # pools held at one thread until both end (threadpoolctl's limit is process-wide: the
-                # search's and the fits' own limits, set and restored on two threads, would interleave)
-                with blas_threads(1 if limit_search is not None else None, user_api="blas"):
-                    if limit_search is not None:
-                        limit_search.start()
-                    try:
-                        add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
-                            "refinement", 0.7 + 0.28 * 0.5 * fraction, losses=losses)))
-                    finally:
-                        if limit_search is not None:
-                            limit_search.wait()
-                first_lost = _unpruned_refinement_lost(scores, hold)
-                needed = first_lost or not _refinement_suffices(explicit, candidates, scores, cfg, verdicts, hold,
-                                                                tolerance_floor)
-                explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": needed,
-                                                                "first_lost": first_lost}
-                if needed:
-                    add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
-                        "refinement", 0.84 + 0.14 * fraction, losses=losses)))
-                self.metrics_["refinement_starts_run"] = float(sum(
-                    name.startswith("refined") and LONG_BRANCH_SUFFIX not in name for name in candidates))
-            if not noisy and cfg.refine_growing_windows and "distilled" in candidates:
-                self._clean_growing_fallback(explicit, candidates, scores, verdicts, hold, starts, refine_from, add)
-            # the limit's family before the further tries without its terms: where it ran and one of its
-            # refined models reproduces the records better than holding their first states, the rescue
-            # and the unrestricted fallback would refine models that cannot saturate (_limit_supersedes)
-            if cfg.limiter_search:
-                try:
-                    self._limiter_family(explicit, candidates, scores, verdicts, hold, noise_floor, library, train,
-                                         scoring, refine_from, add, limit_search, tolerance_floor)
-                except (ValueError, np.linalg.LinAlgError) as err:
-                    # a search that breaks down numerically costs its candidates, not the fit
-                    explicit.metadata.setdefault("limiter", {})["error"] = f"{type(err).__name__}: {err}"
-            superseded = _limit_supersedes(explicit.metadata.get("limiter"), scores, hold)
-            if noisy and cfg.refine_growing_windows and np.isfinite(cfg.refine_rescue_ratio):
-                self._noisy_rescue(explicit, candidates, scores, verdicts, hold, starts, noise_floor, refine_from, add,
-                                   superseded)
-            if cfg.filter_terms == "physics":
-                self._unrestricted_fallback(explicit, candidates, scores, verdicts, hold, starts,
-                                            noise_floor if noisy else None, refine_from, add, superseded)
+                    # the windows of one start are shared out over the threads only where its terms'
+                    # gradients are thread-safe (TermSet.thread_safe_gradient): else the two starts side by
+                    # side are quicker
+                    shared = term_set(candidates[starts[0]].terms, signals).thread_safe_gradient()
+                    # on clean data the second half of the refinement's progress is kept for the fallback below
+                    share = 0.28 if noisy or not cfg.refine_growing_windows else 0.14
+                    running = []
+                    if early is not None:
+                        if starts[1:] == [NOISE_COMPENSATED]:
+                            running = [early[1]]
+                        else:  # (not met: the same verdicts and score chose it early)
+                            early[1].close()
+                    if _both_starts(cfg) or len(starts) == 1 or not shared:
+                        outcomes = _side_by_side(refine_from, starts[:len(starts) - len(running)],
+                                                 lambda fraction, losses: self._emit(
+                                                     "refinement", 0.7 + share * fraction, losses=losses),
+                                                 after=limit_search.run if limit_search is not None else None,
+                                                 running=running)
+                        for k, outcome in enumerate(outcomes):
+                            add(k, *outcome)
+                        threads = _threads_for(len(starts))
+                        if len(starts) > 1:
+                            # (on one thread, where the gradients are not thread-safe, the two ran one after the other)
+                            explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": True,
+                                                                            "side_by_side": threads > 1,
+                                                                            "early": bool(running)}
+                        if running:
+                            self.metrics_["refinement_early_seconds"] = running[0].seconds
+                        self.metrics_["refinement_threads"] = float(threads)
+                    else:
+                        # the first start alone on every thread; the second only where the first's family
+                        # does not give a model consistent with the records' rest points (IdentConfig.refine_starts).
+                        # The limit search needs the records alone: it runs beside that refinement, the BLAS
+                        # pools held at one thread until both end (threadpoolctl's limit is process-wide: the
+                        # search's and the fits' own limits, set and restored on two threads, would interleave)
+                        with blas_threads(1 if limit_search is not None else None, user_api="blas"):
+                            if limit_search is not None:
+                                limit_search.start()
+                            try:
+                                add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
+                                    "refinement", 0.7 + 0.28 * 0.5 * fraction, losses=losses)))
+                            finally:
+                                if limit_search is not None:
+                                    limit_search.wait()
+                        first_lost = _unpruned_refinement_lost(scores, hold)
+                        needed = first_lost or not _refinement_suffices(explicit, candidates, scores, cfg, verdicts,
+                                                                        hold, tolerance_floor)
+                        explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": needed,
+                                                                        "first_lost": first_lost}
+                        if needed:
+                            add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
+                                "refinement", 0.84 + 0.14 * fraction, losses=losses)))
+                        self.metrics_["refinement_starts_run"] = float(sum(
+                            name.startswith("refined") and LONG_BRANCH_SUFFIX not in name for name in candidates))
+                    if not noisy and cfg.refine_growing_windows and "distilled" in candidates:
+                        self._clean_growing_fallback(explicit, candidates, scores, verdicts, hold, starts, refine_from,
+                                                     add)
+                    # the limit's family before the further tries without its terms: where it ran and one of its
+                    # refined models reproduces the records better than holding their first states, the rescue
+                    # and the unrestricted fallback would refine models that cannot saturate (_limit_supersedes)
+                    if cfg.limiter_search:
+                        try:
+                            self._limiter_family(explicit, candidates, scores, verdicts, hold, noise_floor, library,
+                                                 train, scoring, refine_from, add, limit_search, tolerance_floor)
+                        except (ValueError, np.linalg.LinAlgError) as err:
+                            # a search that breaks down numerically costs its candidates, not the fit
+                            explicit.metadata.setdefault("limiter", {})["error"] = f"{type(err).__name__}: {err}"
+                    superseded = _limit_supersedes(explicit.metadata.get("limiter"), scores, hold)
+                    if noisy and cfg.refine_growing_windows and np.isfinite(cfg.refine_rescue_ratio):
+                        self._noisy_rescue(explicit, candidates, scores, verdicts, hold, starts, noise_floor,
+                                           refine_from, add, superseded)
+                    if cfg.filter_terms == "physics":
+                        self._unrestricted_fallback(explicit, candidates, scores, verdicts, hold, starts,
+                                                    noise_floor if noisy else None, refine_from, add, superseded)
+                    if pass_suffix:
+                        _merge_pass(first_pass[:2], (candidates, scores), unrefined, pass_suffix)
+                        # the pass's own records of its starts and tries, beside the first pass's
+                        written = explicit.metadata
+                        explicit.metadata = metadata_before
+                        explicit.metadata["low_snr_pass"] = {
+                            "windows": list(cfg.refine_growing_windows_low_snr), "suffix": pass_suffix,
+                            **{key: value for key, value in written.items()
+                               if key not in metadata_before or value is not metadata_before[key]}}
+            finally:  # a pass that fails leaves the estimator's configuration as it was
+                self.config = configured
+            candidates, scores, verdicts = first_pass
+            cfg = configured
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the records when run freely
         # from their rest states or first samples (refinement that made things worse is dropped), or
@@ -1514,6 +1551,17 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     return out
 
 
+def _merge_pass(into: tuple, second: tuple, unrefined: set, suffix: str) -> None:
+    """The candidates (and their scores) a second refinement pass added to ``unrefined``'s, renamed with
+    ``suffix``, into the first pass's ``(candidates, scores)``. (Rest-point verdicts are cached by name
+    and kind: the selection finds the renamed ones again.)"""
+    for name in second[0]:
+        if name not in unrefined:
+            for mine, theirs in zip(into, second):
+                if name in theirs:
+                    mine[name + suffix] = theirs[name]
+
+
 def low_snr(train: Dataset, cfg: IdentConfig) -> bool:
     """Whether ``train`` counts as low-SNR records: its noise floor (:func:`.noise.noise_floor_error`)
     at or above ``cfg.low_snr_noise_floor`` (%)."""
@@ -1522,12 +1570,15 @@ def low_snr(train: Dataset, cfg: IdentConfig) -> bool:
     return bool(noise_floor_error(train) >= cfg.low_snr_noise_floor)
 
 
-def growing_windows(train: Dataset, cfg: IdentConfig) -> tuple:
-    """The growing stages' windows (samples) on ``train``: ``cfg.refine_growing_windows_low_snr`` on
-    low-SNR records (:func:`low_snr`) where set, else ``cfg.refine_growing_windows``."""
+def growing_stages(train: Dataset, cfg: IdentConfig) -> tuple[list, tuple]:
+    """The growing stages on ``train``: ``(window, evaluations)`` per stage and the stages' window
+    counts (``cfg.refine_growing_max_windows``). On low-SNR records (:func:`low_snr`)
+    ``cfg.refine_growing_windows_low_snr`` where set, with ``cfg.refine_growing_evaluations_low_snr``
+    (or ``cfg.refine_growing_evaluations``) and every window; else ``cfg.refine_growing_windows``."""
     if cfg.refine_growing_windows_low_snr and low_snr(train, cfg):
-        return tuple(cfg.refine_growing_windows_low_snr)
-    return tuple(cfg.refine_growing_windows)
+        evaluations = cfg.refine_growing_evaluations_low_snr or cfg.refine_growing_evaluations
+        return list(zip(cfg.refine_growing_windows_low_snr, evaluations)), ()
+    return list(zip(cfg.refine_growing_windows, cfg.refine_growing_evaluations)), tuple(cfg.refine_growing_max_windows)
 
 
 def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig,
@@ -1550,7 +1601,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     """
     from .trajfit import START_DAMPING, backward_elimination
 
-    stages = list(zip(growing_windows(train, cfg), cfg.refine_growing_evaluations))
+    stages, max_windows = growing_stages(train, cfg)
     polish = list(zip(cfg.refine_polish_windows, cfg.refine_polish_evaluations))
     # a later prune round starts next to a minimum of a wider support: the longest windows suffice
     repolish = polish[-1:]
@@ -1620,7 +1671,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     try:
         result = run(model.coefficients.copy(), stages, cfg.refine_growing_stability_weight,
                      substeps=cfg.refine_growing_substeps, stage_budget=cfg.refine_stage_prune_budget, log=growing_log,
-                     single_stages=cfg.refine_single_precision_stages, max_windows=cfg.refine_growing_max_windows)
+                     single_stages=cfg.refine_single_precision_stages, max_windows=max_windows)
     except (np.linalg.LinAlgError, FloatingPointError) as err:
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
         return {}
@@ -1628,8 +1679,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         return {}
     schedule = {"windows": [w for w, _ in stages], "evaluations": [n for _, n in stages],
                 "pruned_between": pruned_between, "stability_weight": cfg.refine_growing_stability_weight}
-    if cfg.refine_growing_max_windows:
-        schedule["max_windows"] = list(cfg.refine_growing_max_windows)
+    if max_windows:
+        schedule["max_windows"] = list(max_windows)
     meta["refinement"] = {"cost": result.cost, "nfev": used[0], "seconds": time.monotonic() - started,
                           "abandoned": False, "growing_windows": schedule, "rk4_substeps": sorted(substeps_used or ()),
                           "stages": growing_log}
