@@ -2653,6 +2653,7 @@ def test_low_snr_records_are_refined_again_in_their_own_growing_windows_and_both
     meta = est.explicit_model_.metadata
     assert meta["low_snr_pass"]["windows"] == [5, 10] and meta["low_snr_pass"]["suffix"] == LOW_SNR_SUFFIX
     assert "refinement_starts" in meta["low_snr_pass"] and "refinement_starts" in meta
+    assert json.loads(est.explicit_model_.to_json())["metadata"]["low_snr_pass"]["windows"] == [5, 10]
     # both passes' candidates were scored and judged by the short windows (low-SNR records)
     selection = meta["selection"]
     assert set(second) <= set(selection["training_error_pct"])

@@ -194,22 +194,30 @@ class IdentConfig:
     # pass faster: the same models, recordings 0-4 in 52-61 s, median 53.8 s, instead of 89-130 s;
     # `--set refine_growing_evaluations=15,10,10` gives the old models in about two thirds of the time)
     refine_growing_evaluations: tuple = (30, 20, 20)
-    # the growing stages' windows on low-SNR records (the training records' noise floor,
-    # noise.noise_floor_error, at or above low_snr_noise_floor %; empty, the default: refine_growing_windows
-    # there too). Why tried: at 30 dB the windows of 10 samples can leave the first start's family with one
-    # of the two LCL resonances lost (W ~1500 at ug 0.8); from windows of 20 it keeps both more often (stop
-    # 85, recordings 185 and 187: best candidates 0.90-3.2 % IOD against 2.0-8.8 %), but alone they chose
-    # no better (stop 85: 0 of 8 either way on 184-191, OOD median 4.86 against 5.51 %). Stop 94, with
-    # selection_window_excess, 20,50,100 on unseen 296-303 at 30 dB (`bench/setting_sweep.py run --name
-    # snr30-lowsnr-windows-296-303-s94 --seeds 296-303 --noise 30 --set refine_growing_windows_low_snr=20,50,100`,
-    # against `snr30-unseen-296-303-s94-before`, both options off):
-    # better on 296-298 and 303 (297 1.548 / 25.39 -> 0.878 / 4.769 %, 298 1.432 / 2.018 -> 0.631 /
-    # 0.514 %, 303 1.378 / 5.326 % W 1318 spurious -> 0.375 / 1.744 % W 22), worse on 299-302 (299
-    # 1.684 / 7.681 -> 2.562 / 49.35 %, 300 1.280 / 0.551 -> 0.791 / 1.746 %, 301 0.873 / 0.913 ->
-    # 1.586 / 4.488 % spurious at 0.2, 302 W 12 -> 1495); IOD median 1.405 -> 1.107 %, OOD median
-    # 4.98 -> 4.63 %, W above 100 on 4 of 8 either way: not taken. On 299-302 no candidate was taken
-    # out by the short windows: the first family itself came out worse (on 296, 299 and 302 none of
-    # it reproduced the records better than holding their first states)
+    # on low-SNR records (the training records' noise floor, noise.noise_floor_error, at or above
+    # low_snr_noise_floor %) the refinement runs a second pass in these growing windows (every start and
+    # try as in the first pass, which keeps refine_growing_windows), its candidates renamed with
+    # estimators.LOW_SNR_SUFFIX, and both passes' candidates compete; empty: one pass. Why (stop 95,
+    # bench/oracle_bench.py --snr 30 --seeds 296,297 --stages 5:20,10:20,25:20,50:20,400:5): with the
+    # plant's own support, from equation error, windows of 10 lose an LCL resonance at 30 dB (296: cost
+    # 5137 at windows of 10, W 2220 at ug 0.8, where the truth's basin has 2837) and single shooting never
+    # finds it again; a first stage of 5 leads into the truth's basin (single shooting's cost 110.2 on 296
+    # and 110.6 on 297, as from the true coefficients; 0.317 / 0.510 % and 0.234 / 0.372 %). In the engine
+    # (support ~230 terms) the 5,10,25,50 schedule alone, in place of the default
+    # (`bench/candidates.py --seed S --noise 30 --set refine_growing_windows=5,10,25,50 --set
+    # refine_growing_evaluations=20,30,20,20`, 296-303) was better on 296 (9.772 / 25.68 % -> 1.264 /
+    # 1.647 %), 297 (1.548 / 25.39 -> 1.254 / 6.171 %), 300 (1.280 / 0.551 -> 0.644 / 0.839 %) and 302 (OOD
+    # 4.631 -> 0.764 %, but spurious at ug 0.2-0.6) and worse on 298, 299 (1.684 / 7.681 -> 7.008 / 10.22 %,
+    # spurious everywhere), 301 and 303 (1.192 / 1.736 -> 1.663 / 4.108 %); the first family itself
+    # diverged on 297-299 (rest growth rates up to 160 1/s: windows of 5 samples do not see a slow
+    # instability). Both passes (`bench/sweeps/snr30-two-passes-s95.json`): the selection took the better
+    # pass's model on 7 of 8 (302 kept the first pass's 0.637 / 4.631 % against 0.552 / 0.764 % spurious),
+    # OOD median 3.32 -> 1.88 %; on 184-191 two choices changed, 187 1.291 / 8.945 -> 3.232 / 1.971 %, 191
+    # 1.227 / 4.587 -> 1.007 / 1.257 % (OOD median 5.51 -> 2.18 %); 30 dB fits ~2x longer. Until stop 94
+    # this setting replaced the default windows on low-SNR records
+    # (off): 20,50,100 that way on 296-303 (stop 94, `snr30-lowsnr-windows-296-303-s94`) were better on
+    # 296-298 and 303 and worse on 299-302 (299 1.684 / 7.681 -> 2.562 / 49.35 %, 302 W 12 -> 1495); from
+    # windows of 20 the first family keeps both resonances more often (stop 85, 185 and 187)
     refine_growing_windows_low_snr: tuple = (5, 10, 25, 50)
     # evaluations per stage of refine_growing_windows_low_snr (empty: refine_growing_evaluations, which
     # must then have as many stages)
