@@ -2638,8 +2638,12 @@ def test_low_snr_records_are_refined_again_in_their_own_growing_windows_and_both
 
     cfg = IdentConfig.from_mapping({**FAST, "refine_growing_windows_low_snr": "5,10",
                                     "refine_growing_evaluations_low_snr": "2,2", "limiter_search": False})
-    est = make_estimator("pisml", cfg)
-    est.fit(add_measurement_noise(train, 30.0, seed=1), add_measurement_noise(small, 30.0, seed=2))
+    est, updates = make_estimator("pisml", cfg), []
+    est.fit(add_measurement_noise(train, 30.0, seed=1), add_measurement_noise(small, 30.0, seed=2),
+            callback=updates.append)
+    # the two passes share the refinement's part of the progress: it never goes back
+    progress = [u.progress for u in updates]
+    assert progress == sorted(progress) and progress[-1] == 1.0
     assert est.config is cfg and cfg.refine_growing_windows_low_snr == (5, 10)
     second = sorted(name for name in est.candidates_ if name.endswith(LOW_SNR_SUFFIX))
     first = sorted(name for name in est.candidates_ if name.startswith(("refined", "pruned"))

@@ -101,6 +101,10 @@ class _Estimator:
         if self._should_stop():
             raise IdentificationCancelled(f"{self.method}: cancelled during {stage}")
         self._progress = float(progress)  # the last reported: a later optional stage continues from it
+        passes = getattr(self, "_refinement_pass", None)
+        if passes is not None and 0.7 <= progress <= 0.99:
+            # pass k of n of the refinement (low-SNR records) reports within its share of 0.7-0.99
+            progress = 0.7 + (passes[0] * 0.29 + (progress - 0.7)) / passes[1]
         self._callback(StageUpdate(stage, float(progress), int(epoch), dict(losses or {}), model))
 
     def _finish(self, model, explicit):
@@ -394,8 +398,9 @@ class PISML(_Estimator):
             first_pass, configured, unrefined = (candidates, scores, verdicts), cfg, set(candidates)
             self.metrics_["refinement_passes"] = float(len(passes))
             try:
-                for cfg, pass_suffix in passes:
+                for k, (cfg, pass_suffix) in enumerate(passes):
                     self.config = cfg
+                    self._refinement_pass = (k, len(passes)) if len(passes) > 1 else None
                     if pass_suffix:
                         # the second pass sees the candidates from before the refinement only, as a fit would
                         candidates = {name: model for name, model in first_pass[0].items() if name in unrefined}
@@ -502,7 +507,7 @@ class PISML(_Estimator):
                             **{key: value for key, value in written.items()
                                if key not in metadata_before or value is not metadata_before[key]}}
             finally:  # a pass that fails leaves the estimator's configuration as it was
-                self.config = configured
+                self.config, self._refinement_pass = configured, None
             candidates, scores, verdicts = first_pass
             cfg = configured
             self.metrics_["refine_seconds"] = time.monotonic() - started
