@@ -2573,7 +2573,7 @@ def test_selection_passes_over_a_family_the_short_windows_reject_on_low_snr_reco
     far above another's does not compete; within the excess, or without costs, the scores decide.
     Which records are low-SNR (``low_snr_noise_floor``), and the growing windows their second
     refinement pass takes (``refine_growing_windows_low_snr``)."""
-    from pisml_ros.ident.estimators import growing_stages, low_snr
+    from pisml_ros.ident.estimators import LOW_SNR_SUFFIX, low_snr, refinement_passes
     from pisml_ros.ident.selection import _configured_selection, _selected
     from pisml_ros.plant.noise import add_measurement_noise
 
@@ -2607,16 +2607,21 @@ def test_selection_passes_over_a_family_the_short_windows_reject_on_low_snr_reco
     # which records are low-SNR: the protocol's at 30 dB, not at 40 dB nor clean ones
     at30, at40 = add_measurement_noise(train, 30.0, seed=1), add_measurement_noise(train, 40.0, seed=1)
     assert low_snr(at30, cfg) and not low_snr(at40, cfg) and not low_snr(train, cfg)
-    assert growing_stages(at30, cfg) == ([(5, 20), (10, 30), (25, 20), (50, 20)], ())
+    def stages(config):  # each pass's growing stages on the 30 dB records, (window, evaluations), and window counts
+        return [(list(zip(c.refine_growing_windows, c.refine_growing_evaluations)), c.refine_growing_max_windows)
+                for c, _ in refinement_passes(at30, config)]
+
     default = ([(10, 30), (25, 20), (50, 20)], ())
-    assert growing_stages(at40, cfg) == default and growing_stages(train, cfg) == default
+    assert stages(cfg) == [default, ([(5, 20), (10, 30), (25, 20), (50, 20)], ())]
+    assert [suffix for _, suffix in refinement_passes(at30, cfg)] == ["", LOW_SNR_SUFFIX]
+    assert refinement_passes(at40, cfg) == [(cfg, "")] and refinement_passes(train, cfg) == [(cfg, "")]
     longer = IdentConfig.from_mapping({"refine_growing_windows_low_snr": "20,50,100",
                                        "refine_growing_evaluations_low_snr": "", "refine_growing_max_windows": "0,9,0"})
     # (the default stages' evaluations where the low-SNR ones are not given; their window counts default stages' only)
-    assert growing_stages(at30, longer) == ([(20, 30), (50, 20), (100, 20)], ())
-    assert growing_stages(at40, longer) == (default[0], (0, 9, 0))
+    assert stages(longer) == [(default[0], (0, 9, 0)), ([(20, 30), (50, 20), (100, 20)], ())]
+    assert refinement_passes(at40, longer) == [(longer, "")]
     off = IdentConfig.from_mapping({"refine_growing_windows_low_snr": "", "refine_growing_evaluations_low_snr": ""})
-    assert growing_stages(at30, off) == default
+    assert stages(off) == [default]
     for bad in ({"refine_growing_windows_low_snr": "20,50"},
                 {"refine_growing_windows_low_snr": "20,50", "refine_growing_evaluations_low_snr": "5,5,5"},
                 {"refine_growing_windows_low_snr": "", "refine_growing_evaluations_low_snr": "5"}):

@@ -390,11 +390,7 @@ class PISML(_Estimator):
             started = time.monotonic()
             # on low-SNR records a second pass refines the same starts in the low-SNR growing windows
             # (IdentConfig.refine_growing_windows_low_snr); its families compete, renamed (LOW_SNR_SUFFIX)
-            passes = [(cfg, "")]
-            if noisy and cfg.refine_growing_windows_low_snr and low_snr(train, cfg):
-                passes = [(dataclasses.replace(cfg, refine_growing_windows_low_snr=(),
-                                               refine_growing_evaluations_low_snr=()), ""),
-                          (dataclasses.replace(cfg, limiter_search=False), LOW_SNR_SUFFIX)]
+            passes = refinement_passes(train, cfg)
             first_pass, configured, unrefined = (candidates, scores, verdicts), cfg, set(candidates)
             self.metrics_["refinement_passes"] = float(len(passes))
             try:
@@ -503,7 +499,7 @@ class PISML(_Estimator):
                         written = explicit.metadata
                         explicit.metadata = metadata_before
                         explicit.metadata["low_snr_pass"] = {
-                            "windows": list(cfg.refine_growing_windows_low_snr), "suffix": pass_suffix,
+                            "windows": list(cfg.refine_growing_windows), "suffix": pass_suffix,
                             **{key: value for key, value in written.items()
                                if key not in metadata_before or value is not metadata_before[key]}}
             finally:  # a pass that fails leaves the estimator's configuration as it was
@@ -1575,15 +1571,19 @@ def low_snr(train: Dataset, cfg: IdentConfig) -> bool:
     return bool(noise_floor_error(train) >= cfg.low_snr_noise_floor)
 
 
-def growing_stages(train: Dataset, cfg: IdentConfig) -> tuple[list, tuple]:
-    """The growing stages on ``train``: ``(window, evaluations)`` per stage and the stages' window
-    counts (``cfg.refine_growing_max_windows``). On low-SNR records (:func:`low_snr`)
-    ``cfg.refine_growing_windows_low_snr`` where set, with ``cfg.refine_growing_evaluations_low_snr``
-    (or ``cfg.refine_growing_evaluations``) and every window; else ``cfg.refine_growing_windows``."""
-    if cfg.refine_growing_windows_low_snr and low_snr(train, cfg):
-        evaluations = cfg.refine_growing_evaluations_low_snr or cfg.refine_growing_evaluations
-        return list(zip(cfg.refine_growing_windows_low_snr, evaluations)), ()
-    return list(zip(cfg.refine_growing_windows, cfg.refine_growing_evaluations)), tuple(cfg.refine_growing_max_windows)
+def refinement_passes(train: Dataset, cfg: IdentConfig) -> list:
+    """The refinement's passes on ``train``: ``(config, suffix)`` each, the suffix ending the names of the
+    pass's candidates. One, ``cfg`` itself; on noisy low-SNR records (:func:`low_snr`) with
+    ``cfg.refine_growing_windows_low_snr`` set, a second pass whose growing stages are those windows, with
+    ``cfg.refine_growing_evaluations_low_snr`` (or ``cfg.refine_growing_evaluations``) and every window,
+    and no limit search (the first pass's stands)."""
+    if not (cfg.refine_growing_windows_low_snr and _noisy(train) and low_snr(train, cfg)):
+        return [(cfg, "")]
+    second = dataclasses.replace(
+        cfg, refine_growing_windows=cfg.refine_growing_windows_low_snr,
+        refine_growing_evaluations=cfg.refine_growing_evaluations_low_snr or cfg.refine_growing_evaluations,
+        refine_growing_max_windows=(), limiter_search=False)
+    return [(cfg, ""), (second, LOW_SNR_SUFFIX)]
 
 
 def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset | None, cfg: IdentConfig,
@@ -1606,7 +1606,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     """
     from .trajfit import START_DAMPING, backward_elimination
 
-    stages, max_windows = growing_stages(train, cfg)
+    stages = list(zip(cfg.refine_growing_windows, cfg.refine_growing_evaluations))
     polish = list(zip(cfg.refine_polish_windows, cfg.refine_polish_evaluations))
     # a later prune round starts next to a minimum of a wider support: the longest windows suffice
     repolish = polish[-1:]
@@ -1676,7 +1676,7 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     try:
         result = run(model.coefficients.copy(), stages, cfg.refine_growing_stability_weight,
                      substeps=cfg.refine_growing_substeps, stage_budget=cfg.refine_stage_prune_budget, log=growing_log,
-                     single_stages=cfg.refine_single_precision_stages, max_windows=max_windows)
+                     single_stages=cfg.refine_single_precision_stages, max_windows=cfg.refine_growing_max_windows)
     except (np.linalg.LinAlgError, FloatingPointError) as err:
         model.metadata.setdefault("refinement_errors", []).append(f"{type(err).__name__}: {err}")
         return {}
@@ -1684,8 +1684,8 @@ def _refine_growing(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         return {}
     schedule = {"windows": [w for w, _ in stages], "evaluations": [n for _, n in stages],
                 "pruned_between": pruned_between, "stability_weight": cfg.refine_growing_stability_weight}
-    if max_windows:
-        schedule["max_windows"] = list(max_windows)
+    if cfg.refine_growing_max_windows:
+        schedule["max_windows"] = list(cfg.refine_growing_max_windows)
     meta["refinement"] = {"cost": result.cost, "nfev": used[0], "seconds": time.monotonic() - started,
                           "abandoned": False, "growing_windows": schedule, "rk4_substeps": sorted(substeps_used or ()),
                           "stages": growing_log}
