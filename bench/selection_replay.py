@@ -15,6 +15,13 @@ A replay sees only the final candidates: where a setting would have changed what
     for s in $(seq 0 23); do .venv/bin/python bench/candidates.py --seed $s --noise 40 --out c-$s.json; done
     .venv/bin/python bench/selection_replay.py c-*.json --set selection_decay_margin=0
     .venv/bin/python bench/selection_replay.py c-*.json
+
+One fit with the low-SNR refinement pass forced on (``--set low_snr_noise_floor=2.0``) gives the choices
+with it and without it (stop 96, 35 dB): ``--first-pass-only --no-window-check`` replays a fit on records
+that do not count as low-SNR (the first pass's candidates do not depend on that setting)::
+
+    .venv/bin/python bench/selection_replay.py c35-*.json --first-pass-only --no-window-check
+    .venv/bin/python bench/selection_replay.py c35-*.json --set low_snr_noise_floor=2.0
 """
 from __future__ import annotations
 
@@ -30,13 +37,19 @@ BENCH = Path(__file__).resolve().parent
 sys.path[:0] = [str(BENCH), str(BENCH.parent)]
 
 
-def replayed_choice(table: dict, config) -> str:
+def replayed_choice(table: dict, config, first_pass_only: bool = False, window_check: bool = True) -> str:
     """The candidate the selection configured by ``config`` (IdentConfig) takes among ``table``'s
-    (a ``bench/candidates.py --out`` file's contents)."""
+    (a ``bench/candidates.py --out`` file's contents). ``first_pass_only`` leaves out the low-SNR
+    pass's candidates (names with ``estimators.LOW_SNR_SUFFIX``) and ``window_check=False`` the short
+    windows' costs the fit judged: with both, a table fitted with ``low_snr_noise_floor`` forced low
+    replays the choice of a fit where the records do not count as low-SNR (the first pass's candidates
+    do not depend on that setting)."""
+    from pisml_ros.ident.estimators import LOW_SNR_SUFFIX
     from pisml_ros.ident.selection import _configured_selection
     from pisml_ros.model import ExplicitModel
 
-    models = {name: ExplicitModel.from_dict(model, source=name) for name, model in table["models"].items()}
+    models = {name: ExplicitModel.from_dict(model, source=name) for name, model in table["models"].items()
+              if not (first_pass_only and name.endswith(LOW_SNR_SUFFIX))}
     recorded = table["selection"]
     scores = {name: np.inf if recorded["training_error_pct"].get(name) is None
               else recorded["training_error_pct"][name] for name in models}
@@ -50,7 +63,7 @@ def replayed_choice(table: dict, config) -> str:
     # the short windows' costs where the fit judged them (low-SNR records: IdentConfig.selection_window_excess)
     selection = _configured_selection(template, models, scores, config, {}, recorded["hold_error_pct"],
                                       noise_floor=floor, tolerance_floor=floor if noisy else None,
-                                      window_costs=recorded.get("window_costs"))
+                                      window_costs=recorded.get("window_costs") if window_check else None)
     return selection.metadata["selection"]["chosen"]
 
 
@@ -75,6 +88,11 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("tables", nargs="+", help="bench/candidates.py --out files")
+    parser.add_argument("--first-pass-only", action="store_true",
+                        help="leave out the candidates of the low-SNR refinement pass (IdentConfig."
+                             "refine_growing_windows_low_snr)")
+    parser.add_argument("--no-window-check", action="store_true",
+                        help="ignore the short windows' costs the fit judged (IdentConfig.selection_window_excess)")
     add_settings_option(parser)
     args = parser.parse_args(argv)
     config = IdentConfig.load(None, settings_or_exit(args.set, parser))
@@ -83,7 +101,8 @@ def main(argv=None) -> int:
     for path in args.tables:
         try:
             table = json.loads(Path(path).read_text())
-            fitted, chosen = table["chosen"], replayed_choice(table, config)
+            fitted = table["chosen"]
+            chosen = replayed_choice(table, config, args.first_pass_only, not args.no_window_check)
         except (OSError, ValueError, KeyError) as err:
             parser.error(f"{path}: not a bench/candidates.py --out table ({type(err).__name__}: {err})")
         row = table["rows"][chosen]

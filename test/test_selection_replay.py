@@ -72,3 +72,29 @@ def test_the_replay_judges_the_short_window_costs_a_low_snr_fit_recorded(tmp_pat
     assert selection_replay.main([str(path), "--set", "selection_decay_margin=0",
                                   "--set", "selection_window_excess=0"]) == 0
     assert "'pruned +0.1 % x3' 0.278 / 1.224 %" in capsys.readouterr().out
+
+
+def test_the_replay_can_leave_out_the_low_snr_pass_and_the_short_window_costs(tmp_path, capsys):
+    """A table fitted with the low-SNR pass forced on (``low_snr_noise_floor`` low) replays the choice of a
+    fit without it: ``--first-pass-only`` drops the candidates named with LOW_SNR_SUFFIX and
+    ``--no-window-check`` the short windows' costs the fit recorded."""
+    from pisml_ros.ident.estimators import LOW_SNR_SUFFIX
+
+    path = _table(tmp_path)
+    table = json.loads(path.read_text())
+    second = "pruned +0.1 % x3" + LOW_SNR_SUFFIX
+    table["models"][second] = table["models"]["pruned +0.1 % x3 at long windows"]
+    table["rows"][second] = {"iod": 0.211, "ood": 0.432, "spurious": [], "coefficients": 2}
+    table["selection"]["training_error_pct"][second] = 2.5  # the best score
+    table["selection"]["window_costs"] = {"pruned +0.1 % x3": 2900.0, "pruned +0.1 % x3 at long windows": 2850.0,
+                                          second: 2851.0}
+    path.write_text(json.dumps(table))
+    settings = ["--set", "selection_decay_margin=0"]
+    assert selection_replay.main([str(path), *settings]) == 0
+    assert f"'{second}' 0.211 / 0.432 %" in capsys.readouterr().out
+    # without the second pass the short windows reject the better-scoring first-pass candidate
+    assert selection_replay.main([str(path), *settings, "--first-pass-only"]) == 0
+    assert "'pruned +0.1 % x3 at long windows' 0.269 / 0.546 %" in capsys.readouterr().out
+    # and without their costs too, the better score wins, as in a fit on records that are not low-SNR
+    assert selection_replay.main([str(path), *settings, "--first-pass-only", "--no-window-check"]) == 0
+    assert "'pruned +0.1 % x3' 0.278 / 1.224 %" in capsys.readouterr().out
