@@ -21,7 +21,7 @@ with it and without it (stop 96, 35 dB): ``--first-pass-only --no-window-check``
 that do not count as low-SNR (the first pass's candidates do not depend on that setting)::
 
     .venv/bin/python bench/selection_replay.py c35-*.json --first-pass-only --no-window-check
-    .venv/bin/python bench/selection_replay.py c35-*.json --set low_snr_noise_floor=2.0
+    .venv/bin/python bench/selection_replay.py c35-*.json   # as fitted: both passes and the short windows
 """
 from __future__ import annotations
 
