@@ -327,9 +327,10 @@ class PISML(_Estimator):
         verdicts: dict = {}  # stability at the records' rest points, by candidate (selection, refinement start)
 
         def refine_model(start_model, start_error, progress, growing=None, config=None):
+            config = config or cfg
             errors: dict = {}
-            begin = _couplings_centred(_integrators_restricted(start_model, config or cfg, train), cfg, train)
-            refined = refine_explicit(begin, train, smallsignal, config or cfg, progress, start_error=start_error,
+            begin = _couplings_centred(_integrators_restricted(start_model, config, train), config, train)
+            refined = refine_explicit(begin, train, smallsignal, config, progress, start_error=start_error,
                                       errors=errors, scoring=scoring, growing=growing)
             # scored here, on the refinement's own thread: where two run side by side, the first
             # to end scores its models while the other still runs
@@ -388,124 +389,33 @@ class PISML(_Estimator):
             preliminary.metadata["stage"] = "explicit (before refinement)"
             self._emit("explicit (before refinement)", 0.7, model=preliminary)
             started = time.monotonic()
+            context = _RefinementContext(explicit, train, scoring, signals, library, noisy, hold, noise_floor,
+                                         tolerance_floor, refine_model)
             # on low-SNR records a second pass refines the same starts in the low-SNR growing windows
             # (IdentConfig.refine_growing_windows_low_snr); its families compete, renamed (LOW_SNR_SUFFIX)
             passes = refinement_passes(train, cfg)
-            first_pass, configured, unrefined = (candidates, scores, verdicts), cfg, set(candidates)
+            unrefined = dict(candidates)
             self.metrics_["refinement_passes"] = float(len(passes))
             try:
-                for k, (cfg, pass_suffix) in enumerate(passes):
-                    self.config = cfg
+                for k, (pass_config, pass_suffix) in enumerate(passes):
                     self._refinement_pass = (k, len(passes)) if len(passes) > 1 else None
-                    if pass_suffix:
-                        # the second pass sees the candidates from before the refinement only, as a fit would
-                        candidates = {name: model for name, model in first_pass[0].items() if name in unrefined}
-                        scores = {name: first_pass[1][name] for name in candidates}
-                        verdicts, early, limit_search = {}, None, None
-                        metadata_before = explicit.metadata.copy()
-                    starts = _refinement_starts(candidates, scores, explicit.metadata.get("reference_points") or [],
-                                                verdicts)
-                    explicit.metadata["refinement_starts"] = list(starts)
-
-                    def refine_from(start, progress, growing=None, config=None):
-                        return refine_model(candidates[start], scores[start], progress, growing, config)
-
-                    def add(k, refined, errors, suffix=None, start=None):
-                        if suffix is None:
-                            suffix = "" if k == 0 else f" from {starts[k]}"
-                        for name, model in refined.items():
-                            model.metadata["refinement"]["start"] = start or starts[k]
-                            candidates[name + suffix] = model
-                        # (refine_from scored them all)
-                        scores.update({name + suffix: error for name, error in errors.items()})
-
-                    # the windows of one start are shared out over the threads only where its terms'
-                    # gradients are thread-safe (TermSet.thread_safe_gradient): else the two starts side by
-                    # side are quicker
-                    shared = term_set(candidates[starts[0]].terms, signals).thread_safe_gradient()
-                    # on clean data the second half of the refinement's progress is kept for the fallback below
-                    share = 0.28 if noisy or not cfg.refine_growing_windows else 0.14
-                    running = []
-                    if early is not None:
-                        if starts[1:] == [NOISE_COMPENSATED]:
-                            running = [early[1]]
-                        else:  # (not met: the same verdicts and score chose it early)
-                            early[1].close()
-                    if _both_starts(cfg) or len(starts) == 1 or not shared:
-                        outcomes = _side_by_side(refine_from, starts[:len(starts) - len(running)],
-                                                 lambda fraction, losses: self._emit(
-                                                     "refinement", 0.7 + share * fraction, losses=losses),
-                                                 after=limit_search.run if limit_search is not None else None,
-                                                 running=running)
-                        for k, outcome in enumerate(outcomes):
-                            add(k, *outcome)
-                        threads = _threads_for(len(starts))
-                        if len(starts) > 1:
-                            # (on one thread, where the gradients are not thread-safe, the two ran one after the other)
-                            explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": True,
-                                                                            "side_by_side": threads > 1,
-                                                                            "early": bool(running)}
-                        if running:
-                            self.metrics_["refinement_early_seconds"] = running[0].seconds
-                        self.metrics_["refinement_threads"] = float(threads)
-                    else:
-                        # the first start alone on every thread; the second only where the first's family
-                        # does not give a model consistent with the records' rest points (IdentConfig.refine_starts).
-                        # The limit search needs the records alone: it runs beside that refinement, the BLAS
-                        # pools held at one thread until both end (threadpoolctl's limit is process-wide: the
-                        # search's and the fits' own limits, set and restored on two threads, would interleave)
-                        with blas_threads(1 if limit_search is not None else None, user_api="blas"):
-                            if limit_search is not None:
-                                limit_search.start()
-                            try:
-                                add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
-                                    "refinement", 0.7 + 0.28 * 0.5 * fraction, losses=losses)))
-                            finally:
-                                if limit_search is not None:
-                                    limit_search.wait()
-                        first_lost = _unpruned_refinement_lost(scores, hold)
-                        needed = first_lost or not _refinement_suffices(explicit, candidates, scores, cfg, verdicts,
-                                                                        hold, tolerance_floor)
-                        explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": needed,
-                                                                        "first_lost": first_lost}
-                        if needed:
-                            add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
-                                "refinement", 0.84 + 0.14 * fraction, losses=losses)))
-                        self.metrics_["refinement_starts_run"] = float(sum(
-                            name.startswith("refined") and LONG_BRANCH_SUFFIX not in name for name in candidates))
-                    if not noisy and cfg.refine_growing_windows and "distilled" in candidates:
-                        self._clean_growing_fallback(explicit, candidates, scores, verdicts, hold, starts, refine_from,
-                                                     add)
-                    # the limit's family before the further tries without its terms: where it ran and one of its
-                    # refined models reproduces the records better than holding their first states, the rescue
-                    # and the unrestricted fallback would refine models that cannot saturate (_limit_supersedes)
-                    if cfg.limiter_search:
-                        try:
-                            self._limiter_family(explicit, candidates, scores, verdicts, hold, noise_floor, library,
-                                                 train, scoring, refine_from, add, limit_search, tolerance_floor)
-                        except (ValueError, np.linalg.LinAlgError) as err:
-                            # a search that breaks down numerically costs its candidates, not the fit
-                            explicit.metadata.setdefault("limiter", {})["error"] = f"{type(err).__name__}: {err}"
-                    superseded = _limit_supersedes(explicit.metadata.get("limiter"), scores, hold)
-                    if noisy and cfg.refine_growing_windows and np.isfinite(cfg.refine_rescue_ratio):
-                        self._noisy_rescue(explicit, candidates, scores, verdicts, hold, starts, noise_floor,
-                                           refine_from, add, superseded)
-                    if cfg.filter_terms == "physics":
-                        self._unrestricted_fallback(explicit, candidates, scores, verdicts, hold, starts,
-                                                    noise_floor if noisy else None, refine_from, add, superseded)
-                    if pass_suffix:
-                        _merge_pass(first_pass[:2], (candidates, scores), unrefined, pass_suffix)
-                        # the pass's own records of its starts and tries, beside the first pass's
-                        written = explicit.metadata
-                        explicit.metadata = metadata_before
-                        explicit.metadata["low_snr_pass"] = {
-                            "windows": list(cfg.refine_growing_windows), "suffix": pass_suffix,
-                            **{key: value for key, value in written.items()
-                               if key not in metadata_before or value is not metadata_before[key]}}
-            finally:  # a pass that fails leaves the estimator's configuration as it was
-                self.config, self._refinement_pass = configured, None
-            candidates, scores, verdicts = first_pass
-            cfg = configured
+                    if not pass_suffix:
+                        self._refine_pass(pass_config, context, candidates, scores, verdicts, early, limit_search)
+                        continue
+                    # the second pass sees the candidates from before the refinement only, as a fit would
+                    own = (dict(unrefined), {name: scores[name] for name in unrefined})
+                    metadata_before = explicit.metadata.copy()
+                    self._refine_pass(pass_config, context, *own, {}, None, None)
+                    _merge_pass((candidates, scores), own, set(unrefined), pass_suffix)
+                    # the pass's own records of its starts and tries, beside the first pass's
+                    written = explicit.metadata
+                    explicit.metadata = metadata_before
+                    explicit.metadata["low_snr_pass"] = {
+                        "windows": list(pass_config.refine_growing_windows), "suffix": pass_suffix,
+                        **{key: value for key, value in written.items()
+                           if key not in metadata_before or value is not metadata_before[key]}}
+            finally:
+                self._refinement_pass = None
             self.metrics_["refine_seconds"] = time.monotonic() - started
         # 5. the explicit model is the candidate that best reproduces the records when run freely
         # from their rest states or first samples (refinement that made things worse is dropped), or
@@ -537,6 +447,108 @@ class PISML(_Estimator):
         self._emit("explicit", 1.0, model=explicit)
         return self._finish(explicit, explicit)
 
+    def _refine_pass(self, cfg: IdentConfig, context: "_RefinementContext", candidates: dict, scores: dict,
+                     verdicts: dict, early, limit_search) -> None:
+        """One refinement pass with ``cfg``: every start (side by side, or the second where the first's
+        family does not suffice), the clean growing fallback, the limit's family, the noisy rescue and
+        the unrestricted fallback, each adding its refined models to ``candidates`` and ``scores`` (in
+        place) and its record to ``context.explicit.metadata``. ``early`` is the refinement started
+        beside the hybrid's training (:meth:`_early_second_start`, or None); ``limit_search`` the
+        limit search (a :class:`_Deferred`, or None: not in this pass)."""
+        explicit, hold, noisy = context.explicit, context.hold, context.noisy
+        noise_floor, tolerance_floor = context.noise_floor, context.tolerance_floor
+        starts = _refinement_starts(candidates, scores, explicit.metadata.get("reference_points") or [],
+                                    verdicts)
+        explicit.metadata["refinement_starts"] = list(starts)
+
+        def refine_from(start, progress, growing=None, config=None):
+            return context.refine_model(candidates[start], scores[start], progress, growing, config or cfg)
+
+        def add(k, refined, errors, suffix=None, start=None):
+            if suffix is None:
+                suffix = "" if k == 0 else f" from {starts[k]}"
+            for name, model in refined.items():
+                model.metadata["refinement"]["start"] = start or starts[k]
+                candidates[name + suffix] = model
+            # (refine_from scored them all)
+            scores.update({name + suffix: error for name, error in errors.items()})
+
+        # the windows of one start are shared out over the threads only where its terms'
+        # gradients are thread-safe (TermSet.thread_safe_gradient): else the two starts side by
+        # side are quicker
+        shared = term_set(candidates[starts[0]].terms, context.signals).thread_safe_gradient()
+        # on clean data the second half of the refinement's progress is kept for the fallback below
+        share = 0.28 if noisy or not cfg.refine_growing_windows else 0.14
+        running = []
+        if early is not None:
+            if starts[1:] == [NOISE_COMPENSATED]:
+                running = [early[1]]
+            else:  # (not met: the same verdicts and score chose it early)
+                early[1].close()
+        if _both_starts(cfg) or len(starts) == 1 or not shared:
+            outcomes = _side_by_side(refine_from, starts[:len(starts) - len(running)],
+                                     lambda fraction, losses: self._emit(
+                                         "refinement", 0.7 + share * fraction, losses=losses),
+                                     after=limit_search.run if limit_search is not None else None,
+                                     running=running)
+            for k, outcome in enumerate(outcomes):
+                add(k, *outcome)
+            threads = _threads_for(len(starts))
+            if len(starts) > 1:
+                # (on one thread, where the gradients are not thread-safe, the two ran one after the other)
+                explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": True,
+                                                                "side_by_side": threads > 1,
+                                                                "early": bool(running)}
+            if running:
+                self.metrics_["refinement_early_seconds"] = running[0].seconds
+            self.metrics_["refinement_threads"] = float(threads)
+        else:
+            # the first start alone on every thread; the second only where the first's family
+            # does not give a model consistent with the records' rest points (IdentConfig.refine_starts).
+            # The limit search needs the records alone: it runs beside that refinement, the BLAS
+            # pools held at one thread until both end (threadpoolctl's limit is process-wide: the
+            # search's and the fits' own limits, set and restored on two threads, would interleave)
+            with blas_threads(1 if limit_search is not None else None, user_api="blas"):
+                if limit_search is not None:
+                    limit_search.start()
+                try:
+                    add(0, *refine_from(starts[0], lambda fraction, losses: self._emit(
+                        "refinement", 0.7 + 0.28 * 0.5 * fraction, losses=losses)))
+                finally:
+                    if limit_search is not None:
+                        limit_search.wait()
+            first_lost = _unpruned_refinement_lost(scores, hold)
+            needed = first_lost or not _refinement_suffices(explicit, candidates, scores, cfg, verdicts,
+                                                            hold, tolerance_floor)
+            explicit.metadata["refinement_second_start"] = {"start": starts[1], "run": needed,
+                                                            "first_lost": first_lost}
+            if needed:
+                add(1, *refine_from(starts[1], lambda fraction, losses: self._emit(
+                    "refinement", 0.84 + 0.14 * fraction, losses=losses)))
+            self.metrics_["refinement_starts_run"] = float(sum(
+                name.startswith("refined") and LONG_BRANCH_SUFFIX not in name for name in candidates))
+        if not noisy and cfg.refine_growing_windows and "distilled" in candidates:
+            self._clean_growing_fallback(cfg, explicit, candidates, scores, verdicts, hold, starts, refine_from,
+                                         add)
+        # the limit's family before the further tries without its terms: where it ran and one of its
+        # refined models reproduces the records better than holding their first states, the rescue
+        # and the unrestricted fallback would refine models that cannot saturate (_limit_supersedes)
+        if cfg.limiter_search:
+            try:
+                self._limiter_family(cfg, explicit, candidates, scores, verdicts, hold, noise_floor,
+                                     context.library, context.train, context.scoring, refine_from, add, limit_search,
+                                     tolerance_floor)
+            except (ValueError, np.linalg.LinAlgError) as err:
+                # a search that breaks down numerically costs its candidates, not the fit
+                explicit.metadata.setdefault("limiter", {})["error"] = f"{type(err).__name__}: {err}"
+        superseded = _limit_supersedes(explicit.metadata.get("limiter"), scores, hold)
+        if noisy and cfg.refine_growing_windows and np.isfinite(cfg.refine_rescue_ratio):
+            self._noisy_rescue(cfg, explicit, candidates, scores, verdicts, hold, starts, noise_floor,
+                               refine_from, add, superseded)
+        if cfg.filter_terms == "physics":
+            self._unrestricted_fallback(cfg, explicit, candidates, scores, verdicts, hold, starts,
+                                        noise_floor if noisy else None, refine_from, add, superseded)
+
     def _early_second_start(self, compensated, backbone, scoring, verdicts, refine_model, limit_search=None):
         """``(score, job)``: the refinement from the noise-compensated backbone started now, beside the
         hybrid's training, where it will be the second refinement start (``IdentConfig.refine_starts``
@@ -564,13 +576,12 @@ class PISML(_Estimator):
 
         return score, _Beside(job, "pisml-refine-early")
 
-    def _clean_growing_fallback(self, explicit, candidates, scores, verdicts, hold, starts, refine_from, add):
+    def _clean_growing_fallback(self, cfg, explicit, candidates, scores, verdicts, hold, starts, refine_from, add):
         """On clean data, where the model the selection would take does not reproduce the records
         within ``clean_growing_error``: the equation-error fits behind the sparse starts went wrong
         (coarse samples: quadrature and RK4 errors), so the merged model is refined in growing
         windows and pruned as noisy data are, and that family (``… from distilled``) joins the
         candidates. Recorded in the metadata (``refinement_growing_fallback``) and the metrics."""
-        cfg = self.config
         chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold)
         if not scores[chosen] > cfg.clean_growing_error:
             return
@@ -583,7 +594,7 @@ class PISML(_Estimator):
             "selected_before": chosen, "error_pct": scores[chosen], "added": sorted(set(candidates) - before)}
         self.metrics_["clean_growing_fallback"] = 1.0
 
-    def _noisy_rescue(self, explicit, candidates, scores, verdicts, hold, starts, floor, refine_from, add,
+    def _noisy_rescue(self, cfg, explicit, candidates, scores, verdicts, hold, starts, floor, refine_from, add,
                       superseded=False):
         """On noisy data, where the model the selection would take scores above
         ``refine_rescue_ratio`` times what the noise alone leaves (``floor``,
@@ -614,7 +625,6 @@ class PISML(_Estimator):
         (:func:`_limit_supersedes`: the limit's family ran first and gave a model): the record says so
         (``superseded_by_limit``) and neither runs. Recorded in the metadata
         (``refinement_rescue``, ``refinement_second_start``) and the metrics."""
-        cfg = self.config
 
         def chosen_ratio():
             chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold,
@@ -646,7 +656,7 @@ class PISML(_Estimator):
             second.update(run=True, after_rescue=True)
             self.metrics_["refinement_starts_run"] = 2.0
 
-    def _limiter_family(self, explicit, candidates, scores, verdicts, hold, floor, library, train, scoring,
+    def _limiter_family(self, cfg, explicit, candidates, scores, verdicts, hold, floor, library, train, scoring,
                         refine_from, add, limit_search: _Deferred, tolerance_floor: float | None = None):
         """The records may hold a saturation no library term has: a limit of a dq reference (its
         magnitude, or each axis) is fitted to them (``limit_search``, a :class:`_Deferred`
@@ -675,7 +685,6 @@ class PISML(_Estimator):
         search finds no limit in any of the 41 record sets of stop 56's check (protocol recordings
         0–9 at 40 dB, clean, 20 and 30 dB; the other inverters; the scenarios at 40 dB).
         """
-        cfg = self.config
         chosen = _would_choose(explicit, candidates, scores, cfg, verdicts, hold, tolerance_floor=tolerance_floor)
         threshold = cfg.selection_warn_noise_ratio * floor + cfg.selection_warn_noise_margin
         record = {"selected_before": chosen, "error_pct": scores[chosen], "threshold_pct": threshold,
@@ -735,7 +744,7 @@ class PISML(_Estimator):
         base = max(getattr(self, "_progress", 0.84), 0.84)
         return lambda fraction, losses: self._emit("refinement", base + (0.99 - base) * fraction, losses=losses)
 
-    def _unrestricted_fallback(self, explicit, candidates, scores, verdicts, hold, starts, floor, refine_from, add,
+    def _unrestricted_fallback(self, cfg, explicit, candidates, scores, verdicts, hold, starts, floor, refine_from, add,
                                superseded=False):
         """With ``filter_terms`` "physics": where no restricted refinement gives a model that runs
         freely through the records better than holding their first states (every one broke down,
@@ -752,7 +761,6 @@ class PISML(_Estimator):
         from before the refinement (``before_refinement``). Not where ``superseded``
         (:func:`_limit_supersedes`; the record says ``superseded_by_limit``). Recorded in the metadata
         (``refinement_unrestricted``) and the metrics."""
-        cfg = self.config
         chosen, misfits = _would_choose_misfits(explicit, candidates, scores, cfg, verdicts, hold,
                                                 tolerance_floor=floor)
         # (a re-fit may be chosen on its merits: lost means no refinement ran through to a free run
@@ -783,6 +791,26 @@ class PISML(_Estimator):
                                 config=free), suffix=("" if k == 0 else f" from {start}") + " unrestricted")
         record["added"] = sorted(set(candidates) - before)
         self.metrics_["refinement_unrestricted"] = 1.0
+
+
+@dataclasses.dataclass
+class _RefinementContext:
+    """What every refinement pass of one fit (:meth:`PISML._refine_pass`) shares: the explicit model whose
+    metadata records the passes, the records (training, and those the candidates are scored on), the
+    signal names, the re-fit library (the limit's family extends it), whether the records are noisy,
+    the hold error and the noise floor (%) the rescue and the selection measure from, and
+    ``refine_model(start_model, start_error, progress, growing, config)``, which refines and scores."""
+
+    explicit: ExplicitModel
+    train: Dataset
+    scoring: Dataset
+    signals: list
+    library: list
+    noisy: bool
+    hold: float
+    noise_floor: float
+    tolerance_floor: float | None
+    refine_model: Callable
 
 
 def _limit_supersedes(limiter: dict | None, scores: dict, hold: float) -> bool:
