@@ -489,6 +489,26 @@ def test_noise_floor_error_is_what_the_noise_alone_leaves(train, small):
     assert noise_floor_error(clean) < 1e-3 * noise_floor_error(add_measurement_noise(clean, 40.0, seed=4))
 
 
+def test_the_estimated_snr_is_the_one_the_noise_was_drawn_at_whatever_the_records_operating_points(train):
+    # the noise floor weighs each record by its own norm; the SNR is the records' together, as drawn
+    import dataclasses
+
+    from pisml_ros.data import Dataset
+    from pisml_ros.ident.noise import estimated_snr_db, noise_floor_error
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    for snr in (40.0, 35.0, 30.0):
+        assert estimated_snr_db(add_measurement_noise(train, snr, seed=5)) == pytest.approx(snr, abs=0.5)
+    assert estimated_snr_db(train) == np.inf
+    # records at a quarter of the states' size beside full-size ones: the floor rises, the SNR holds
+    scaled = [dataclasses.replace(tr, x=tr.x * (0.25 if k % 2 else 1.0)) for k, tr in enumerate(train)]
+    mixed = add_measurement_noise(Dataset(train.state_names, train.input_names, scaled, dict(train.metadata)),
+                                  40.0, seed=5)
+    alike = add_measurement_noise(train, 40.0, seed=5)
+    assert noise_floor_error(mixed) > 1.5 * noise_floor_error(alike)
+    assert estimated_snr_db(mixed) == pytest.approx(40.0, abs=0.5)
+
+
 def test_noisy_measured_inputs_are_held_at_their_means_where_they_are_constant(train, small):
     from pisml_ros.data.dataset import concat_datasets
     from pisml_ros.ident.noise import input_noise_std, piecewise_constant_inputs
@@ -2571,7 +2591,7 @@ def test_window_costs_tell_a_lost_resonance_from_the_records_short_spans():
 def test_selection_passes_over_a_family_the_short_windows_reject_on_low_snr_records(train):
     """``selection_window_excess``: a family that scores best run freely but whose short-window cost is
     far above another's does not compete; within the excess, or without costs, the scores decide.
-    Which records are low-SNR (``low_snr_noise_floor``), and the growing windows their second
+    Which records are low-SNR (``low_snr_below_db``), and the growing windows their second
     refinement pass takes (``refine_growing_windows_low_snr``)."""
     from pisml_ros.ident.estimators import LOW_SNR_SUFFIX, low_snr, refinement_passes
     from pisml_ros.ident.selection import _configured_selection, _selected
@@ -2604,9 +2624,12 @@ def test_selection_passes_over_a_family_the_short_windows_reject_on_low_snr_reco
     assert cfg.selection_window_excess == 300.0 and cfg.refine_growing_windows_low_snr == (5, 10, 25, 50)
     configured = _configured_selection(candidates["refined"], candidates, scores, cfg, {}, np.inf, window_costs=costs)
     assert configured.metadata["selection"]["chosen"] == "pruned +0.1 %"
-    # which records are low-SNR: the protocol's at 30 dB, not at 40 dB nor clean ones
+    # which records are low-SNR: the protocol's at 30 and 35 dB, not at 40 dB nor clean ones
     at30, at40 = add_measurement_noise(train, 30.0, seed=1), add_measurement_noise(train, 40.0, seed=1)
+    assert cfg.low_snr_below_db == 37.5 and low_snr(add_measurement_noise(train, 35.0, seed=1), cfg)
     assert low_snr(at30, cfg) and not low_snr(at40, cfg) and not low_snr(train, cfg)
+    always, never = (IdentConfig.from_mapping({"low_snr_below_db": v}) for v in ("inf", 0))
+    assert low_snr(at40, always) and not low_snr(train, always) and not low_snr(at30, never)
     def stages(config):  # each pass's growing stages on the 30 dB records, (window, evaluations), and window counts
         return [(list(zip(c.refine_growing_windows, c.refine_growing_evaluations)), c.refine_growing_max_windows)
                 for c, _ in refinement_passes(at30, config)]
@@ -2629,6 +2652,9 @@ def test_selection_passes_over_a_family_the_short_windows_reject_on_low_snr_reco
             IdentConfig.from_mapping(bad)
     with pytest.raises(ConfigError, match="selection_window_excess"):
         IdentConfig.from_mapping({"selection_window_excess": -1})
+    for bad in (-1, "nan"):
+        with pytest.raises(ConfigError, match="low_snr_below_db must be an SNR in dB"):
+            IdentConfig.from_mapping({"low_snr_below_db": bad})
 
 
 @pytest.mark.slow

@@ -194,9 +194,8 @@ class IdentConfig:
     # pass faster: the same models, recordings 0-4 in 52-61 s, median 53.8 s, instead of 89-130 s;
     # `--set refine_growing_evaluations=15,10,10` gives the old models in about two thirds of the time)
     refine_growing_evaluations: tuple = (30, 20, 20)
-    # on low-SNR records (the training records' noise floor, noise.noise_floor_error, at or above
-    # low_snr_noise_floor %) the refinement runs a second pass in these growing windows (every start and
-    # try as in the first pass, which keeps refine_growing_windows), its candidates renamed with
+    # on low-SNR records (low_snr_below_db) the refinement runs a second pass in these growing windows (every
+    # start and try as in the first pass, which keeps refine_growing_windows), its candidates renamed with
     # estimators.LOW_SNR_SUFFIX, and both passes' candidates compete; empty: one pass. Why (stop 95,
     # bench/oracle_bench.py --snr 30 --seeds 296,297 --stages 5:20,10:20,25:20,50:20,400:5): with the
     # plant's own support, from equation error, windows of 10 lose an LCL resonance at 30 dB (296: cost
@@ -222,11 +221,14 @@ class IdentConfig:
     # evaluations per stage of refine_growing_windows_low_snr (empty: refine_growing_evaluations, which
     # must then have as many stages)
     refine_growing_evaluations_low_snr: tuple = (20, 30, 20, 20)
-    # the noise floor (%, noise.noise_floor_error of the training records) from which the records
-    # count as low-SNR (refine_growing_windows_low_snr, selection_window_excess); inf: never. Measured
-    # (stop 94, training records): 40 dB 1.2-2.0 % (the protocol, and the 5 kHz, 20 kHz, noisy-input,
-    # small-signal-at-ug-1.0 and 8x60 ms scenarios), 35 dB 2.2-2.6 %, 30 dB 4.3-5.2 %
-    low_snr_noise_floor: float = 3.5
+    # the training records count as low-SNR (refine_growing_windows_low_snr, selection_window_excess) where
+    # their estimated signal-to-noise ratio (noise.estimated_snr_db: per state RMS / noise std, the median
+    # over the states) is below this (dB); 0: never, inf: any noisy records. Measured (stop 96, 8 recordings
+    # of the protocol and of each scenario of bench/scenarios_bench.py): 39.9-40.1 dB at 40 dB, 34.9-35.1 at
+    # 35, 29.9-30.1 at 30. Until stop 95 a noise floor (noise.noise_floor_error, low_snr_noise_floor 3.5 %)
+    # decided, which weighs each record by its own norm: records starting at ug 0.6-1.0 reach 2.5 % at 40 dB,
+    # the protocol's 2.1 % at 35 dB, so no floor told 35 dB from 40, and 35 dB ran one pass. SNR35_NOTE
+    low_snr_below_db: float = 37.5
     # at most this many windows per growing-window stage, evenly spread over the records (0 or an
     # empty list: all of them); a stage's Gauss-Newton pass is linear in its windows. Stop 67 (to buy
     # fit time), 240 of the 480 windows of 10 (`bench/setting_sweep.py run --name maxwin240-s67 --set
@@ -905,7 +907,7 @@ class IdentConfig:
     # replayed on the unseen recordings 40-55: 10 of 16 as without (44, 45, 50 re-chosen, none across
     # the targets; 50 takes 120 coefficients against 80)
     selection_grid_stability: bool = False
-    # on low-SNR records (low_snr_noise_floor), the eligible candidates whose multiple-shooting cost
+    # on low-SNR records (low_snr_below_db), the eligible candidates whose multiple-shooting cost
     # over windows of SELECTION_WINDOW samples (coefficients fixed, each window's start state fitted:
     # trajfit.window_costs) exceeds the lowest one's by more than this, as a chi-square (2 (window + 1)
     # times the cost difference: the squared misfit in noise units), do not compete; 0 or inf: off.
@@ -923,7 +925,8 @@ class IdentConfig:
     # the rows: bench/sweeps/snr30-window-check-s94.json); on 184-191 (the
     # same, stop 84's sweep's recordings) it took out 0-7 candidates a fit and changed no choice. The
     # 40 dB protocol (floor 1.2-2.0 %) never runs it: its fits are as before to the bit (224's table).
-    # Forced on at 40 dB (`bench/candidates.py --seed S --noise 40 --set low_snr_noise_floor=0`, 224-239):
+    # Forced on at 40 dB (`bench/candidates.py --seed S --noise 40 --set low_snr_noise_floor=0`, 224-239; since
+    # stop 96 low_snr_below_db=inf):
     # it took out one candidate on 231 and one on 235, changed no choice (10 of 16 within either way)
     selection_window_excess: float = 300.0
     # on noisy records, where the chosen model's slowest mode at the small-signal records' rest points
@@ -1102,9 +1105,12 @@ class IdentConfig:
                               f"{self.refine_max_step}")
         for key in ("refine_rescue_ratio", "refine_retry_ratio", "refine_rescue_stability_weight",
                     "selection_round_rise", "selection_warn_noise_ratio", "selection_warn_noise_margin",
-                    "selection_floor_tolerance", "selection_window_excess", "low_snr_noise_floor"):
+                    "selection_floor_tolerance", "selection_window_excess"):
             if not getattr(self, key) >= 0:  # also NaN, which would switch the rescue or the rule off unseen
                 raise ConfigError(f"identification config: {key} must be >= 0 (inf: off), got {getattr(self, key)}")
+        if not self.low_snr_below_db >= 0:  # also NaN
+            raise ConfigError(f"identification config: low_snr_below_db must be an SNR in dB >= 0 (0: no records "
+                              f"count as low-SNR), got {self.low_snr_below_db}")
         if not (math.isfinite(self.selection_decay_margin) and self.selection_decay_margin >= 0):
             raise ConfigError(f"identification config: selection_decay_margin must be a rate >= 0 (1/s; 0: off), "
                               f"got {self.selection_decay_margin}")

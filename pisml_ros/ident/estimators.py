@@ -1592,11 +1592,11 @@ def _merge_pass(into: tuple, second: tuple, unrefined: set, suffix: str) -> None
 
 
 def low_snr(train: Dataset, cfg: IdentConfig) -> bool:
-    """Whether ``train`` counts as low-SNR records: its noise floor (:func:`.noise.noise_floor_error`)
-    at or above ``cfg.low_snr_noise_floor`` (%)."""
-    from .noise import noise_floor_error
+    """Whether ``train`` counts as low-SNR records: its estimated signal-to-noise ratio
+    (:func:`.noise.estimated_snr_db`) below ``cfg.low_snr_below_db`` (dB)."""
+    from .noise import estimated_snr_db
 
-    return bool(noise_floor_error(train) >= cfg.low_snr_noise_floor)
+    return bool(estimated_snr_db(train) < cfg.low_snr_below_db)
 
 
 def refinement_passes(train: Dataset, cfg: IdentConfig) -> list:
