@@ -16,9 +16,10 @@ A replay sees only the final candidates: where a setting would have changed what
     .venv/bin/python bench/selection_replay.py c-*.json --set selection_decay_margin=0
     .venv/bin/python bench/selection_replay.py c-*.json
 
-One fit with the low-SNR refinement pass forced on (``--set low_snr_noise_floor=2.0``) gives the choices
-with it and without it (stop 96, 35 dB): ``--first-pass-only --no-window-check`` replays a fit on records
-that do not count as low-SNR (the first pass's candidates do not depend on that setting)::
+One fit on low-SNR records (``IdentConfig.low_snr_below_db``; 40 dB ones with ``--set low_snr_below_db=inf``)
+gives the choices with the second refinement pass and the short-window check and without them (stop 96,
+35 dB): ``--first-pass-only --no-window-check`` replays a fit on records that do not count as low-SNR
+(the first pass's candidates do not depend on that setting)::
 
     .venv/bin/python bench/selection_replay.py c35-*.json --first-pass-only --no-window-check
     .venv/bin/python bench/selection_replay.py c35-*.json   # as fitted: both passes and the short windows
@@ -41,7 +42,7 @@ def replayed_choice(table: dict, config, first_pass_only: bool = False, window_c
     """The candidate the selection configured by ``config`` (IdentConfig) takes among ``table``'s
     (a ``bench/candidates.py --out`` file's contents). ``first_pass_only`` leaves out the low-SNR
     pass's candidates (names with ``estimators.LOW_SNR_SUFFIX``) and ``window_check=False`` the short
-    windows' costs the fit judged: with both, a table fitted with ``low_snr_noise_floor`` forced low
+    windows' costs the fit judged: with both, a table fitted on low-SNR records
     replays the choice of a fit where the records do not count as low-SNR (the first pass's candidates
     do not depend on that setting)."""
     from pisml_ros.ident.estimators import LOW_SNR_SUFFIX

@@ -75,8 +75,8 @@ def test_the_replay_judges_the_short_window_costs_a_low_snr_fit_recorded(tmp_pat
 
 
 def test_the_replay_can_leave_out_the_low_snr_pass_and_the_short_window_costs(tmp_path, capsys):
-    """A table fitted with the low-SNR pass forced on (``low_snr_noise_floor`` low) replays the choice of a
-    fit without it: ``--first-pass-only`` drops the candidates named with LOW_SNR_SUFFIX and
+    """A table fitted on low-SNR records (``low_snr_below_db``) replays the choice of a fit on records that
+    do not count as low-SNR: ``--first-pass-only`` drops the candidates named with LOW_SNR_SUFFIX and
     ``--no-window-check`` the short windows' costs the fit recorded."""
     from pisml_ros.ident.estimators import LOW_SNR_SUFFIX
 
