@@ -507,6 +507,11 @@ def test_the_estimated_snr_is_the_one_the_noise_was_drawn_at_whatever_the_record
     alike = add_measurement_noise(train, 40.0, seed=5)
     assert noise_floor_error(mixed) > 1.5 * noise_floor_error(alike)
     assert estimated_snr_db(mixed) == pytest.approx(40.0, abs=0.5)
+    # every fit's model records it (clean: None, as JSON has no inf)
+    from pisml_ros.ident.estimators import _meta
+
+    assert _meta("pisml", IdentConfig(), alike, None)["training"]["estimated_snr_db"] == pytest.approx(40.0, abs=0.5)
+    assert json.loads(json.dumps(_meta("pisml", IdentConfig(), train, None)))["training"]["estimated_snr_db"] is None
 
 
 def test_noisy_measured_inputs_are_held_at_their_means_where_they_are_constant(train, small):
@@ -2693,6 +2698,7 @@ def test_low_snr_records_are_refined_again_in_their_own_growing_windows_and_both
     selection = meta["selection"]
     assert set(second) <= set(selection["training_error_pct"])
     assert est.metrics_["refinement_passes"] == 2.0
+    assert meta["training"]["estimated_snr_db"] == pytest.approx(30.0, abs=0.5)
     # 40 dB records: one pass
     once = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
                                             add_measurement_noise(small, 40.0, seed=2))

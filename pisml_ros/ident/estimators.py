@@ -32,7 +32,7 @@ from .library import (centred_terms, coupling_separation, extended_library, filt
                       grid_voltage_pairs, power_row_mask,
                       monomial_basis, physics_library, rebased, term_degrees)
 from .limiter import fit_reference_limit
-from .noise import input_noise_std, piecewise_constant_inputs
+from .noise import estimated_snr_db, input_noise_std, piecewise_constant_inputs
 from .roles import SignalRoles
 from .selection import (LONG_BRANCH_SUFFIX, SELECTION_WINDOW, _any_beats_hold, _configured_selection,
                         _noisy_choice_needs_retry, _prune_round_name, _refinement_family, _refinement_suffices,
@@ -129,8 +129,12 @@ def _meta(method: str, config: IdentConfig, train: Dataset, smallsignal: Dataset
     # where the data were: an analysis outside this range extrapolates (analysis.data_coverage)
     input_range = {name: [float(inputs[:, j].min()), float(inputs[:, j].max())]
                    for j, name in enumerate(train.input_names)}
+    # (None on clean records, JSON having no inf, and on records too short to tell noise from signal)
+    snr = estimated_snr_db(train) if any(len(tr) > 2 for tr in train) else np.inf
     return {"method": method, "config": config.to_dict(), "reference_points": reference_points(train, also=smallsignal),
             "training": {"trajectories": len(train), "samples": train.n_samples,
+                         # the records' SNR as the engine estimated it (IdentConfig.low_snr_below_db)
+                         "estimated_snr_db": round(snr, 2) if np.isfinite(snr) else None,
                          "smallsignal_trajectories": len(smallsignal) if smallsignal is not None else 0,
                          "records_at_rest": records_at_rest(train),
                          "input_range": input_range,
@@ -1594,8 +1598,6 @@ def _merge_pass(into: tuple, second: tuple, unrefined: set, suffix: str) -> None
 def low_snr(train: Dataset, cfg: IdentConfig) -> bool:
     """Whether ``train`` counts as low-SNR records: its estimated signal-to-noise ratio
     (:func:`.noise.estimated_snr_db`) below ``cfg.low_snr_below_db`` (dB)."""
-    from .noise import estimated_snr_db
-
     return bool(estimated_snr_db(train) < cfg.low_snr_below_db)
 
 
