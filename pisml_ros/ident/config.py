@@ -224,8 +224,8 @@ class IdentConfig:
     # the training records count as low-SNR (refine_growing_windows_low_snr, selection_window_excess) where
     # their estimated signal-to-noise ratio (noise.estimated_snr_db: per state RMS / noise std, the median
     # over the states) is below this (dB); 0: never, inf: any noisy records. Measured (stop 96, 8 recordings
-    # of the protocol and of 20 kHz, 5 kHz, ug0 0.6-1.0, jumps 10-20° in bench/scenarios_bench.py):
-    # 39.9-40.1 dB at 40 dB, 34.9-35.1 at 35, 29.9-30.1 at 30. Until stop 95 a noise floor (noise.noise_floor_error,
+    # of the protocol and of each scenario of bench/scenarios_bench.py but "inputs 20 dB quieter"):
+    # 39.8-40.1 dB at 40 dB, 34.9-35.1 at 35, 29.8-30.2 at 30. Until stop 95 a noise floor (noise.noise_floor_error,
     # low_snr_noise_floor 3.5 %) decided; it weighs each record by its own norm: records starting at ug
     # 0.6-1.0 reach 2.5 % at 40 dB, above the protocol's 2.1 % at 35 dB, so no floor tells 35 dB from 40,
     # and 35 dB ran one pass. At 35 dB, unseen 304-319 (bench/sweeps/snr35-*-s96.json, candidate tables;

@@ -69,8 +69,8 @@ def estimated_snr_db(dataset: Dataset) -> float:
 
     Unlike :func:`noise_floor_error`, which weighs each record by its own norm, it does not move with
     the operating points the records visit (stop 96: the protocol's training records and those of
-    every scenario of ``bench/scenarios_bench.py`` give 39.9-40.1 dB at 40 dB and 34.9-35.1 dB at
-    35 dB, where the noise floor of records starting at ug 0.6-1.0 reaches 2.5 % at 40 dB, above the
+    every scenario of ``bench/scenarios_bench.py`` tried give 39.8-40.1 dB at 40 dB and 34.9-35.1 dB
+    at 35 dB, where the noise floor of records starting at ug 0.6-1.0 reaches 2.5 % at 40 dB, above the
     protocol's 2.1 % at 35 dB).
 
     Returns
