@@ -462,6 +462,16 @@ class IdentConfig:
     # 40-55`, against default-unseen-40-55-s78.json): 9 of 16 within both accuracy targets with no
     # spurious mode against 10 (won 40, 44, 54; lost 42, 43, 50, 51), at most 84 coefficients 12
     # against 15: a reshuffle again. Not taken
+    # Stop 97, at 30 dB (both passes' polish and long branch at 200 samples, 2 windows a record;
+    # `bench/candidates.py --seed S --noise 30 --set refine_polish_windows=50,200`, 296-301, against the
+    # default's tables on the same machine, 296's from snr30-two-passes-s95): better on 296 only (1.264 /
+    # 1.647 -> 1.021 / 0.779 %), worse on 297 (0.935 / 7.823 % against 1.254 / 6.171, spurious), 298 (1.432 /
+    # 2.018 -> 1.939 / 1.318 %, spurious), 300 (0.644 / 0.839 -> 1.397 / 2.854 %) and 301 (0.873 / 0.913 ->
+    # 2.970 / 5.858 %), 299 about the same (1.671 / 8.812 -> 1.477 / 9.004 %), though with the
+    # plant's own support single shooting keeps gaining at 30 dB (`bench/oracle_bench.py --snr 30 --seeds
+    # 296,297 --stages 5:20,10:20,25:20,50:20,100:8,200:5,400:5`: windows of 100 / 200 / 400 0.645 / 0.438,
+    # 0.380 / 0.748, 0.254 / 0.538 % on 296; bench/ORACLE_RESULTS_snr30_long_windows.md). 100,400 on 296: 2.124 /
+    # 1.097 %. Not taken
     refine_polish_windows: tuple = (50, 100)
     # on noisy data: a second branch of each refinement start after its growing-window stages, the
     # refined model re-fitted in the polish's longest windows (this many evaluations), then pruned and
