@@ -217,6 +217,14 @@ class IdentConfig:
     # (off): 20,50,100 that way on 296-303 (stop 94, `snr30-lowsnr-windows-296-303-s94`) were better on
     # 296-298 and 303 and worse on 299-302 (299 1.684 / 7.681 -> 2.562 / 49.35 %, 302 W 12 -> 1495); from
     # windows of 20 the first family keeps both resonances more often (stop 85, 185 and 187)
+    # Stop 97, 20,50,100 (30, 20, 20 evaluations) as the second pass in place of 5,10,25,50 (`bench/candidates.py
+    # --seed S --noise 30 --set refine_growing_windows_low_snr=20,50,100 --set
+    # refine_growing_evaluations_low_snr=30,20,20`, 296-303, against snr30-two-passes-s95 and the default's
+    # tables of 297-301 on the same machine, which gave its rows to the bit): better on 297 (1.254 / 6.171 ->
+    # 0.878 / 4.769 %) and 303 (1.192 / 1.736 -> 0.674 / 1.257 %), worse on 296 (1.264 / 1.647 -> 3.646 /
+    # 9.171 %, spurious) and 300 (0.644 / 0.839 -> 0.791 / 1.746 %), 298 mixed (1.432 / 2.018 -> 0.781 / 2.970
+    # %), 299, 301, 302 the same. Both as passes two and three (the tables of 297-301 merged and replayed):
+    # only 297 and 298 change, as above. A reshuffle for half again the fit time: not taken
     refine_growing_windows_low_snr: tuple = (5, 10, 25, 50)
     # evaluations per stage of refine_growing_windows_low_snr (empty: refine_growing_evaluations, which
     # must then have as many stages)
