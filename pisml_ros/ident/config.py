@@ -220,7 +220,8 @@ class IdentConfig:
     # Stop 97, 20,50,100 (30, 20, 20 evaluations) as the second pass in place of 5,10,25,50 (`bench/candidates.py
     # --seed S --noise 30 --set refine_growing_windows_low_snr=20,50,100 --set
     # refine_growing_evaluations_low_snr=30,20,20`, 296-303, against snr30-two-passes-s95 and the default's
-    # tables of 297-301 on the same machine, which gave its rows to the bit): better on 297 (1.254 / 6.171 ->
+    # tables of 297-301 on the same machine, which gave its rows but 299's, 1.671 / 8.812 % against 1.684 /
+    # 7.681): better on 297 (1.254 / 6.171 ->
     # 0.878 / 4.769 %) and 303 (1.192 / 1.736 -> 0.674 / 1.257 %), worse on 296 (1.264 / 1.647 -> 3.646 /
     # 9.171 %, spurious) and 300 (0.644 / 0.839 -> 0.791 / 1.746 %), 298 mixed (1.432 / 2.018 -> 0.781 / 2.970
     # %), 299, 301, 302 the same. Both as passes two and three (the tables of 297-301 merged and replayed):
