@@ -874,6 +874,7 @@ def test_identify_simulate_analyse_cli(tmp_path, train, capsys):
     printed = capsys.readouterr().out
     assert f"identified on ug {low:.4g}-{high:.4g}\n" in printed
     assert f"training records starting at rest: {len(train)} of {len(train)}\n" in printed
+    assert "estimated SNR" not in printed  # clean records
     model = ExplicitModel.load(out)
     assert model.metadata["identification"]["method"] == "mod-sindy"
     assert model.metadata["training"]["records_at_rest"] == len(train)
@@ -887,6 +888,12 @@ def test_identify_simulate_analyse_cli(tmp_path, train, capsys):
     assert main(["identify", "--data", str(moving), "--method", "mod-sindy", "--out", str(out), "--quiet"]) == 0
     assert f"training records starting at rest: 0 of {len(train)} (constant inputs" in capsys.readouterr().out
     assert ExplicitModel.load(out).metadata["training"]["records_at_rest"] == 0
+    # noisy records: the user is told the SNR the engine estimated
+    from pisml_ros.plant.noise import add_measurement_noise
+    noisy = write_dataset(add_measurement_noise(train, 35.0, seed=1), tmp_path / "noisy.csv")
+    assert main(["identify", "--data", str(noisy), "--method", "mod-sindy", "--out", str(out), "--quiet"]) == 0
+    snr = ExplicitModel.load(out).metadata["training"]["estimated_snr_db"]
+    assert snr == pytest.approx(35.0, abs=0.5) and f"  records' estimated SNR {snr:.1f} dB" in capsys.readouterr().out
     pred = tmp_path / "pred.csv"
     assert main(["simulate", "--model", str(out), "--data", str(data), "--out", str(pred)]) == 0
     assert len(read_dataset(pred)) == len(train)
@@ -2699,8 +2706,16 @@ def test_low_snr_records_are_refined_again_in_their_own_growing_windows_and_both
     assert set(second) <= set(selection["training_error_pct"])
     assert est.metrics_["refinement_passes"] == 2.0
     assert meta["training"]["estimated_snr_db"] == pytest.approx(30.0, abs=0.5)
+    # pisml identify's summary says what the engine made of the noise
+    from pisml_ros.cli import records_noise_line
+    line = records_noise_line(meta)
+    assert line.startswith(f"records' estimated SNR {meta['training']['estimated_snr_db']:.1f} dB (the noise alone")
+    assert line.endswith(f'a second refinement pass in windows of 5, 10 samples (candidates "...{LOW_SNR_SUFFIX}")')
     # 40 dB records: one pass
     once = make_estimator("pisml", cfg).fit(add_measurement_noise(train, 40.0, seed=1),
                                             add_measurement_noise(small, 40.0, seed=2))
     assert not any(name.endswith(LOW_SNR_SUFFIX) for name in once.candidates_)
     assert "low_snr_pass" not in once.explicit_model_.metadata and once.metrics_["refinement_passes"] == 1.0
+    assert "estimated SNR" in records_noise_line(once.explicit_model_.metadata)
+    assert "refinement pass" not in records_noise_line(once.explicit_model_.metadata)
+    assert records_noise_line({"training": {"estimated_snr_db": None}}) is None
