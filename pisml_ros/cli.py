@@ -114,6 +114,7 @@ def cmd_identify(args) -> int:
     from .data import concat_datasets, read_dataset
     from .ident import METHODS, ConfigError, IdentConfig, make_estimator, selection_warnings, settings_from_assignments
     from .ident.limiter import limit_in_use, limit_note, readable_equations
+    from .ident.noise import noise_note
 
     if args.method not in METHODS:
         raise UserError(f"--method {args.method}: choose one of {', '.join(METHODS)}")
@@ -178,7 +179,7 @@ def cmd_identify(args) -> int:
         print(f"  training records starting at rest: {resting} of {records}" + (
             "" if resting else " (constant inputs and still states before the first input change): the "
             "selection's equilibrium check and the stability prior rest on the small-signal records alone"))
-    noise = records_noise_line(model.metadata)
+    noise = noise_note(model)
     if noise:
         print(f"  {noise}")
     note = limit_note(model)
@@ -190,33 +191,6 @@ def cmd_identify(args) -> int:
         for line in readable_equations(model, digits=5):
             print("  " + line)
     return 0
-
-
-def records_noise_line(metadata: dict) -> str | None:
-    """What the engine made of the training records' noise, from an explicit model's ``metadata``: their
-    estimated SNR (``training.estimated_snr_db``), the free-run error the noise alone leaves
-    (``selection.noise_floor_pct``) and whether they counted as low-SNR (a ``low_snr_pass`` record);
-    None on clean records.
-
-    Parameters
-    ----------
-    metadata : dict
-        The explicit model's metadata.
-
-    Returns
-    -------
-    str or None
-        One line for ``pisml identify``'s summary.
-    """
-    snr = (metadata.get("training") or {}).get("estimated_snr_db")
-    if snr is None:
-        return None
-    floor = (metadata.get("selection") or {}).get("noise_floor_pct")
-    low = metadata.get("low_snr_pass")
-    return (f"records' estimated SNR {snr:.1f} dB"
-            + (f" (the noise alone leaves {floor:.3g} % free-run error)" if floor is not None else "")
-            + (f"; low-SNR: a second refinement pass in windows of {', '.join(map(str, low['windows']))} "
-               f"samples (candidates \"...{low['suffix']}\")" if low else ""))
 
 
 def cmd_data_info(args) -> int:

@@ -2707,8 +2707,8 @@ def test_low_snr_records_are_refined_again_in_their_own_growing_windows_and_both
     assert est.metrics_["refinement_passes"] == 2.0
     assert meta["training"]["estimated_snr_db"] == pytest.approx(30.0, abs=0.5)
     # pisml identify's summary says what the engine made of the noise
-    from pisml_ros.cli import records_noise_line
-    line = records_noise_line(meta)
+    from pisml_ros.ident.noise import noise_note
+    line = noise_note(est.explicit_model_)
     assert line.startswith(f"records' estimated SNR {meta['training']['estimated_snr_db']:.1f} dB (the noise alone")
     assert line.endswith(f'a second refinement pass in windows of 5, 10 samples (candidates "...{LOW_SNR_SUFFIX}")')
     # 40 dB records: one pass
@@ -2716,6 +2716,5 @@ def test_low_snr_records_are_refined_again_in_their_own_growing_windows_and_both
                                             add_measurement_noise(small, 40.0, seed=2))
     assert not any(name.endswith(LOW_SNR_SUFFIX) for name in once.candidates_)
     assert "low_snr_pass" not in once.explicit_model_.metadata and once.metrics_["refinement_passes"] == 1.0
-    assert "estimated SNR" in records_noise_line(once.explicit_model_.metadata)
-    assert "refinement pass" not in records_noise_line(once.explicit_model_.metadata)
-    assert records_noise_line({"training": {"estimated_snr_db": None}}) is None
+    note = noise_note(once.explicit_model_)
+    assert "estimated SNR" in note and "refinement pass" not in note

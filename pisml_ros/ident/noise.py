@@ -333,3 +333,21 @@ def piecewise_constant_inputs(dataset: Dataset, sigma: np.ndarray | None = None,
     trajectories = [Trajectory(tr.traj_id, tr.t, tr.x, u) for tr, u in zip(dataset, inputs)]
     meta = dict(dataset.metadata, inputs_denoised={name: r["sigma"] for name, r in report.items()})
     return Dataset(dataset.state_names, dataset.input_names, trajectories, meta), report
+
+
+def noise_note(model) -> str | None:
+    """What the engine made of the training records' noise, in words for a user: their estimated SNR
+    (``model.metadata["training"]["estimated_snr_db"]``, :func:`estimated_snr_db`), the free-run error
+    the noise alone leaves (``metadata["selection"]["noise_floor_pct"]``) and whether they counted as
+    low-SNR (a ``metadata["low_snr_pass"]`` record, ``IdentConfig.low_snr_below_db``); None on clean
+    records."""
+    metadata = getattr(model, "metadata", None) or {}
+    snr = (metadata.get("training") or {}).get("estimated_snr_db")
+    if snr is None:
+        return None
+    floor = (metadata.get("selection") or {}).get("noise_floor_pct")
+    low = metadata.get("low_snr_pass")
+    return (f"records' estimated SNR {snr:.1f} dB"
+            + (f" (the noise alone leaves {floor:.3g} % free-run error)" if floor is not None else "")
+            + (f"; low-SNR: a second refinement pass in windows of {', '.join(map(str, low['windows']))} "
+               f"samples (candidates \"...{low['suffix']}\")" if low else ""))

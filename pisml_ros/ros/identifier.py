@@ -47,6 +47,7 @@ from ..data.stream import TrajectoryBuffer  # noqa: E402
 from ..fileio import atomic_write_text, json_default  # noqa: E402
 from ..ident import IdentConfig, selection_warnings  # noqa: E402
 from ..ident.limiter import limit_in_use, limit_note  # noqa: E402
+from ..ident.noise import noise_note  # noqa: E402
 from ..ident.worker import IdentificationWorker, RunResult  # noqa: E402
 from ..model import ExplicitModel  # noqa: E402
 from .conversions import model_message, overrides_from_assignments, overrides_from_fields  # noqa: E402
@@ -251,6 +252,9 @@ class IdentifierNode(Node):
             self._save_history(result)
             self.get_logger().info(f"run {job.model_id} done in {time.monotonic() - started:.1f} s: {stage} model, "
                                    f"{job.result.n_parameters} parameters")
+            noise = noise_note(result.model)
+            if noise:
+                self.get_logger().info(f"run {job.model_id}: {noise}")
             note = limit_note(result.model)
             if note:
                 # a limit the model does without is a caution: its response beyond the records is not the inverter's
