@@ -932,11 +932,11 @@ class IdentConfig:
     # 0.190 / 3.66 % instead of 0.328 / 0.944 %). One mended, one broken: the data do not decide a
     # slow mode's sign out there, and no direction of this rule does. Not the default. Stop 78,
     # replayed on the unseen recordings 40-55: 10 of 16 as without (44, 45, 50 re-chosen, none across
-    # the targets; 50 takes 120 coefficients against 80). Stop 97, replayed on the 32 unseen tables of
-    # 320-351 (`bench/selection_replay.py TABLES --set selection_grid_stability=true`): 22 of 32 within both
-    # accuracy targets with no spurious mode against 21 (347 mended: spurious at ug 0.2 -> 0.139 / 0.164 %,
-    # but 97 coefficients against 71; 338 re-chosen within), at most 84 coefficients 25 against 26;
-    # `selection_floor_tolerance=5.0` changed no count there (21 of 32)
+    # the targets; 50 takes 120 coefficients against 80). Stop 97, replayed on the 48 unseen tables of
+    # 320-367 (`bench/selection_replay.py TABLES --set selection_grid_stability=true`): 29 of 48 within both
+    # accuracy targets with no spurious mode against 28 (347 mended: spurious at ug 0.2 -> 0.139 / 0.164 %,
+    # but 97 coefficients against 71; 338 re-chosen within; nothing on 352-367), at most 84 coefficients 39
+    # against 40; `selection_floor_tolerance=5.0` changed no count on 320-351 (21 of 32)
     selection_grid_stability: bool = False
     # on low-SNR records (low_snr_below_db), the eligible candidates whose multiple-shooting cost
     # over windows of SELECTION_WINDOW samples (coefficients fixed, each window's start state fitted:
