@@ -1877,11 +1877,14 @@ def test_selection_prefers_the_sparsest_pruned_model_near_the_refined_one():
     starts["noise-compensated backbone"] = two["re-fit +300 %"]  # no equilibrium: not a start
     assert _refinement_starts(starts, start_scores, points) == ["distilled"]
     # a re-fit whose free run is further off than zero (>= 100 %) is no start, even where the merged
-    # model lacks an equilibrium; where every candidate is that far off, the equilibria decide again
+    # model lacks an equilibrium; where every candidate is that far off, the merged model is (stop 98:
+    # from the 337 % re-fit that had the equilibria the whole fit failed); without one the equilibria decide
     hopeless = {"distilled": two["re-fit +300 %"], "re-fit +100 %": two["pruned +1 %"]}
     assert _refinement_starts(hopeless, {"distilled": 6.8, "re-fit +100 %": 276.0}, points) == ["distilled"]
     assert _refinement_starts(hopeless, {"distilled": 99.0, "re-fit +100 %": 20.0}, points) == ["re-fit +100 %"]
-    assert _refinement_starts(hopeless, {"distilled": 150.0, "re-fit +100 %": 276.0}, points) == ["re-fit +100 %"]
+    assert _refinement_starts(hopeless, {"distilled": float("inf"), "re-fit +100 %": 337.0}, points) == ["distilled"]
+    refits = {"re-fit +300 %": two["re-fit +300 %"], "re-fit +100 %": two["pruned +1 %"]}
+    assert _refinement_starts(refits, {"re-fit +300 %": 150.0, "re-fit +100 %": 276.0}, points) == ["re-fit +100 %"]
     # each start's refinement is a family of its own: the pruned models compete with their own refined model
     family = {"refined": model(6), "pruned +0.3 %": model(3), "refined from noise-compensated backbone": model(6),
               "pruned +0.3 % from noise-compensated backbone": model(2)}
