@@ -71,7 +71,7 @@ def test_config_rejects_unknown_and_bad_values(tmp_path):
         IdentConfig.from_mapping({"device": "gpu"})
     with pytest.raises(ConfigError, match="refine_prune_budgets must be >= 0"):
         IdentConfig.from_mapping({"refine_prune_budgets": [0.01, -1]})
-    with pytest.raises(ConfigError, match="integrator_terms must be linear, error or any, got 'quadratic'"):
+    with pytest.raises(ConfigError, match="integrator_terms must be linear, error, cascade or any, got 'quadratic'"):
         IdentConfig.from_mapping({"integrator_terms": "quadratic"})
     with pytest.raises(ConfigError, match="refine_stability_points must be records or smallsignal"):
         IdentConfig.from_mapping({"refine_stability_points": "everywhere"})
@@ -1961,6 +1961,20 @@ def test_integrator_equations_without_their_own_loop():
         assert list(mask[:, index[row]]) == [True, True, True, False, False, True]
     # other rows keep every integrator
     assert mask[:, index["vc_d"]].all()
+    # "cascade": the voltage loop's rows lose the current loop's integrators too, the current loop's
+    # rows are as above
+    cascade = integrator_row_mask(terms, STATE_NAMES, STATE_NAMES + INPUT_NAMES, SignalRoles(), own_loop=False,
+                                  inner_loops=False)
+    for row in ("phi_d", "phi_q"):
+        assert list(cascade[:, index[row]]) == [True, False, False, False, False, True]
+    for row in ("gamma_d", "gamma_q", "vc_d"):
+        assert (cascade[:, index[row]] == mask[:, index[row]]).all()
+    # one loop per integrator (an odd count): each row loses itself and those listed after it
+    odd = integrator_row_mask(["1", "phi_d", "phi_q", "gamma_d"], STATE_NAMES, STATE_NAMES + INPUT_NAMES,
+                              SignalRoles(integrators=("phi_d", "phi_q", "gamma_d")), own_loop=False, inner_loops=False)
+    assert list(odd[:, index["phi_d"]]) == [True, False, False, False]
+    assert list(odd[:, index["phi_q"]]) == [True, True, False, False]
+    assert list(odd[:, index["gamma_d"]]) == [True, True, True, False]
 
 
 def test_filter_equations_keep_the_physics_of_a_rotating_frame_only():

@@ -538,8 +538,10 @@ class IdentConfig:
     # and the plain signals (:func:`~.library.integrator_row_mask`); "error" to those without their
     # own loop's integrators (an integrator integrates an error its own state does not enter;
     # roles.integrator_loops; measured worse, stop 62: microgrid or weak-grid verdict wrong on 4 of the
-    # 40 dB recordings 0-5 against 3, within both accuracy targets 1 against 2); "any" lets them take
-    # every term of the library
+    # 40 dB recordings 0-5 against 3, within both accuracy targets 1 against 2); "cascade" also keeps
+    # each loop's integrators out of the rows of the loops outside it (the voltage loop's rows lose
+    # gamma: roles.integrators lists the loops from the outer one in); "any" lets them take every term
+    # of the library
     integrator_terms: str = "linear"
     # Stop 50, measured and dropped (scratch setting, bench/sweeps/angle-relative.json): the angle only
     # inside the grid terms ug·cos/sin(theta_g - delta), without delta, sin(delta), cos(delta) in Θ and
@@ -1147,8 +1149,8 @@ class IdentConfig:
                               f"got {self.selection_decay_margin}")
         if not 0 <= self.dropout < 1:
             raise ConfigError(f"identification config: dropout must be in [0, 1), got {self.dropout}")
-        if self.integrator_terms not in ("linear", "error", "any"):
-            raise ConfigError(f"identification config: integrator_terms must be linear, error or any, "
+        if self.integrator_terms not in ("linear", "error", "cascade", "any"):
+            raise ConfigError(f"identification config: integrator_terms must be linear, error, cascade or any, "
                               f"got {self.integrator_terms!r}")
         if not (self.input_interval_threshold >= 0 and self.input_edge_width >= 0):
             raise ConfigError(f"identification config: input_interval_threshold and input_edge_width must be >= 0 "

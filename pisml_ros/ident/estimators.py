@@ -1093,7 +1093,7 @@ def _stability_anchors(train: Dataset, smallsignal: Dataset | None, cfg: IdentCo
 
 def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Dataset | None = None) -> ExplicitModel:
     """``model`` with its integrator equations kept to the terms :func:`~.library.integrator_row_mask`
-    admits (``cfg.integrator_terms`` "linear" or "error") and its output filter's equations to those
+    admits (``cfg.integrator_terms`` "linear", "error" or "cascade") and its output filter's equations to those
     :func:`~.library.filter_row_mask` admits (``cfg.filter_terms == "physics"``), its filtered-power
     equations to those :func:`~.library.power_row_mask` admits (``cfg.power_terms == "physics"``) and
     its grid-current equations' voltage pairs tied (``cfg.filter_voltage_tie``); else ``model`` itself."""
@@ -1104,7 +1104,8 @@ def _integrators_restricted(model: ExplicitModel, cfg: IdentConfig, train: Datas
     meta = dict(model.metadata)
     if cfg.integrator_terms != "any":
         mask &= integrator_row_mask(model.terms, list(model.state_names), signals, cfg.roles,
-                                    own_loop=cfg.integrator_terms == "linear")
+                                    own_loop=cfg.integrator_terms == "linear",
+                                    inner_loops=cfg.integrator_terms != "cascade")
         meta["integrator_terms"] = cfg.integrator_terms
     coef = np.where(mask, model.coefficients, 0.0)
     if train is not None:

@@ -48,7 +48,7 @@ def is_limited(expr: sympy.Expr) -> bool:
 
 
 def integrator_row_mask(terms: Sequence[str], state_names: Sequence[str], signals: Sequence[str],
-                        roles: SignalRoles, own_loop: bool = True):
+                        roles: SignalRoles, own_loop: bool = True, inner_loops: bool = True):
     """Which (term, state) entries a model may use, with the controller integrators' equations kept
     to the constant and the plain signals.
 
@@ -76,10 +76,18 @@ def integrator_row_mask(terms: Sequence[str], state_names: Sequence[str], signal
     microgrid or weak-grid verdict wrong on 4 of 6 against 3, within both accuracy targets 1 against
     2: the slow modes those verdicts turn on are not set by these terms alone.
 
+    With ``inner_loops`` False too, an integrator's row also loses the integrators of the loops
+    inside its own (those after it in ``roles.integrators``, listed from the outer loop in): an outer
+    loop's reference and measured signal are what the inner loops act on, not their integrators,
+    while an inner loop's error carries the outer integrators through its reference (the current
+    reference holds ``KiV * phi``).
+
     Parameters
     ----------
     own_loop : bool
         Whether an integrator's row may hold its own loop's integrators as plain terms.
+    inner_loops : bool
+        Whether an integrator's row may hold the integrators of the loops inside its own.
 
     Returns
     -------
@@ -89,14 +97,20 @@ def integrator_row_mask(terms: Sequence[str], state_names: Sequence[str], signal
     mask = np.ones((len(terms), len(state_names)), dtype=bool)
     names = list(state_names)
     rows = [names.index(s) for s in roles.integrators if s in names]
-    loop_of = {s: loop for loop in roles.integrator_loops() for s in loop}
+    loops = roles.integrator_loops()
+    loop_of = {s: loop for loop in loops for s in loop}
+    # the rows each loop's integrator is barred from: its own loop's, and with inner_loops False
+    # those of every loop outside it (it is an inner loop to them)
+    barred = {s: [t for j, other in enumerate(loops) for t in other
+                  if (not own_loop and j == i) or (not inner_loops and j < i)]
+              for i, loop in enumerate(loops) for s in loop}
     for k, term in enumerate(terms):
         _, expr = parse_term(term, signals).as_coeff_Mul()
         # a limited reference (ident.limiter) is what an integrator behind the limit integrates
         if rows and not (expr.is_number or expr.is_Symbol or is_limited(expr)):
             mask[k, rows] = False
-        elif not own_loop and expr.is_Symbol and expr.name in loop_of:
-            mask[k, [names.index(s) for s in loop_of[expr.name] if s in names]] = False
+        elif expr.is_Symbol and expr.name in loop_of:
+            mask[k, [names.index(s) for s in barred[expr.name] if s in names]] = False
     return mask
 
 
