@@ -98,7 +98,6 @@ def integrator_row_mask(terms: Sequence[str], state_names: Sequence[str], signal
     names = list(state_names)
     rows = [names.index(s) for s in roles.integrators if s in names]
     loops = roles.integrator_loops()
-    loop_of = {s: loop for loop in loops for s in loop}
     # the rows each loop's integrator is barred from: its own loop's, and with inner_loops False
     # those of every loop outside it (it is an inner loop to them)
     barred = {s: [t for j, other in enumerate(loops) for t in other
@@ -109,7 +108,7 @@ def integrator_row_mask(terms: Sequence[str], state_names: Sequence[str], signal
         # a limited reference (ident.limiter) is what an integrator behind the limit integrates
         if rows and not (expr.is_number or expr.is_Symbol or is_limited(expr)):
             mask[k, rows] = False
-        elif expr.is_Symbol and expr.name in loop_of:
+        elif expr.is_Symbol and expr.name in barred:
             mask[k, [names.index(s) for s in barred[expr.name] if s in names]] = False
     return mask
 
