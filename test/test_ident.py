@@ -1736,6 +1736,75 @@ def test_selection_passes_over_a_model_whose_slow_mode_barely_decays_at_the_smal
             IdentConfig.from_mapping({"selection_decay_margin": bad})
 
 
+def test_selection_passes_over_a_model_unstable_where_no_record_rests():
+    """``selection_stability_rechoice``: on noisy records a choice unstable at a grid voltage below
+    every rest point gives way to the candidates within the floor tolerance of the best score that are
+    stable there, keep the choice's operating points and decay at the small-signal point as fast
+    (stop 100, 40 dB: recordings 347, 356 and 378 chose models unstable at ug 0.2-0.6, where the
+    plant decays at -0.22 1/s and no record rests)."""
+    from pisml_ros.ident.selection import _below_rests, _configured_selection, _selected
+
+    def model(c0, c1, extra=0):  # x' = (c0 + c1 ug)(ug - x): the equilibrium x = ug, its mode at -(c0 + c1 ug)
+        coef = np.zeros((4 + extra, 1))
+        coef[:4, 0] = [c0, -c0, c1, -c1]
+        coef[4:, 0] = 1e-9  # coefficients that do nothing at rest, so that the models differ in size
+        return ExplicitModel(("x",), ("ug",), ["ug", "x", "ug**2", "x*ug", "x**3", "ug**3"][:4 + extra], coef, {})
+
+    points = [{"inputs": [0.8], "state": [0.8], "smallsignal": True}, {"inputs": [1.0], "state": [1.0]}]
+    template = ExplicitModel(("x",), ("ug",), ["ug", "x"], np.zeros((2, 1)), {"reference_points": points})
+    grid = (0.2, 0.4, 0.8, 1.0)
+    assert _below_rests(template, grid) == [0, 1] and _below_rests(template, (0.8, 1.2)) == []
+    # the choice: -0.3 1/s at ug 0.8, +0.1 at 0.4, +0.3 at 0.2; the others -0.5 everywhere
+    candidates = {"refined": model(-0.5, 1.0, 2), "pruned +0.1 % x3": model(-0.5, 1.0),
+                  "pruned +0.1 % at long windows": model(0.5, 0.0, 2),
+                  "pruned +0.1 % x2 at long windows": model(0.5, 0.0, 1)}
+    scores = {"refined": np.inf, "pruned +0.1 % x3": 2.8, "pruned +0.1 % at long windows": 3.3,
+              "pruned +0.1 % x2 at long windows": 2.9}
+    noisy = {"tolerance": 0.5, "unstable_rate": 1.0, "tolerance_floor": 1.8, "floor_tolerance": 1.0,
+             "equilibrium_grid": grid}
+
+    def chosen(scores=scores, **kwargs):
+        return _selected(template, candidates, scores, **{**noisy, **kwargs}).metadata["selection"]
+
+    assert chosen()["chosen"] == "pruned +0.1 % x3" and chosen()["stability_rechoice"] is None  # off
+    moved = chosen(stability_rechoice=True)
+    # the cut: 1.8 + 2 x (2.8 - 1.8) = 3.8 %; among those stable below the rests the best, then its
+    # family's sparsest near it
+    assert moved["chosen"] == "pruned +0.1 % x2 at long windows"
+    rechoice = moved["stability_rechoice"]
+    assert rechoice["from"] == "pruned +0.1 % x3" and rechoice["to"] == moved["chosen"]
+    assert rechoice["rates"]["pruned +0.1 % x3"] == pytest.approx(0.3)
+    assert rechoice["rates"]["pruned +0.1 % x2 at long windows"] == pytest.approx(-0.5)
+    # the model passed over stays an alternative: the analysis says the records do not decide there
+    model_on = _selected(template, candidates, scores, **noisy, stability_rechoice=True)
+    assert "pruned +0.1 % x3" in [entry["name"] for entry in model_on.metadata["alternatives"]]
+    # none stable there within the cut, clean records (no floor), a grid with no voltage below the
+    # rests: the choice stands
+    far = {**scores, "pruned +0.1 % at long windows": 3.9, "pruned +0.1 % x2 at long windows": 4.0}
+    assert chosen(far, stability_rechoice=True)["chosen"] == "pruned +0.1 % x3"
+    assert chosen(stability_rechoice=True, tolerance_floor=None)["chosen"] == "pruned +0.1 % x3"
+    assert chosen(stability_rechoice=True, equilibrium_grid=(0.8, 1.0))["chosen"] == "pruned +0.1 % x3"
+    # nor does it lose an operating point the choice has as stable: x' = 1.05 - ug - x**2 is stable
+    # at ug 0.2-1.0 but has no equilibrium above ug 1.05, where the choice is stable (-0.7 1/s at 1.2)
+    folding = ExplicitModel(("x",), ("ug",), ["1", "ug", "x**2"], np.array([[1.05], [-1.0], [-1.0]]), {})
+    candidates["pruned +0.1 % x2 at long windows"] = folding
+    assert chosen(stability_rechoice=True)["chosen"] == "pruned +0.1 % x2 at long windows"
+    assert chosen(stability_rechoice=True, equilibrium_grid=grid + (1.2,))["chosen"] == "pruned +0.1 % at long windows"
+    # nor, with the decay margin on, one that decays slower than it at the small-signal point (the
+    # rule of selection_decay_margin stands)
+    candidates["pruned +0.1 % x2 at long windows"] = model(0.05, 0.0, 1)
+    assert chosen(stability_rechoice=True)["chosen"] == "pruned +0.1 % x2 at long windows"
+    assert chosen(stability_rechoice=True, decay_margin=0.1)["chosen"] == "pruned +0.1 % at long windows"
+    candidates["pruned +0.1 % x2 at long windows"] = model(0.5, 0.0, 1)
+    assert IdentConfig().selection_stability_rechoice is True  # (the default since stop 100)
+    on = IdentConfig.from_mapping({"selection_equilibrium_grid": list(grid)})
+    configured = _configured_selection(template, candidates, scores, on, {}, np.inf, tolerance_floor=1.8)
+    assert configured.metadata["selection"]["chosen"] == "pruned +0.1 % x2 at long windows"
+    off = IdentConfig.from_mapping({"selection_stability_rechoice": False, "selection_equilibrium_grid": list(grid)})
+    configured = _configured_selection(template, candidates, scores, off, {}, np.inf, tolerance_floor=1.8)
+    assert configured.metadata["selection"]["chosen"] == "pruned +0.1 % x3"
+
+
 def test_selection_passes_over_a_prune_round_that_lost_the_fit_and_the_rounds_after_it():
     from pisml_ros.ident.selection import _lost_rounds, _selected
 

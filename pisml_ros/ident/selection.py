@@ -360,7 +360,8 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
               noise_margin: float = 0.0, refinement_expected: bool = False,
               rest_offset: float = np.inf, tolerance_floor: float | None = None,
               floor_tolerance: float = np.inf, decay_margin: float = 0.0,
-              window_costs: dict | None = None, window_excess: float = np.inf) -> ExplicitModel:
+              window_costs: dict | None = None, window_excess: float = np.inf,
+              stability_rechoice: bool = False) -> ExplicitModel:
     """The candidate with the smallest free-run error in ``scores`` (training records, and the
     small-signal records where a fit has them), with ``template``'s metadata and the selection.
 
@@ -466,6 +467,18 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
             chosen = _chosen_among(pool, candidates, scores, tolerance, points, verdicts, competing=eligible,
                                    lost=lost, grid_inputs=stability_grid, passed=passed, **above_floor)
             rechoice["to"] = chosen
+    stability = None
+    if models and stability_rechoice and tolerance_floor is not None and np.isfinite(floor_tolerance):
+        rates = _stability_rechoice(chosen, eligible, candidates, scores, points, verdicts, tolerance_floor,
+                                    floor_tolerance, grid_inputs, _below_rests(template, equilibrium_grid),
+                                    decay_margin)
+        if rates:
+            pool = [name for name in rates if name != chosen]
+            stability = {"from": chosen, "rates": rates}
+            chosen = _chosen_among(pool, candidates, scores, tolerance, points, verdicts, competing=eligible,
+                                   lost=lost, grid_inputs=stability_grid, passed=passed, **above_floor)
+            stability["to"] = chosen
+    if models and decay_margin > 0 and tolerance_floor is not None and np.isfinite(floor_tolerance):
         slow_rate = _smallsignal_rate(chosen, candidates, points, verdicts)
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
@@ -477,6 +490,10 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     # the candidates the records cannot tell apart from the choice (only among models: where none
     # beats the hold, none is a model worth asking)
     rivals = rival_names(chosen, eligible, scores, tolerance) if models else []
+    if stability is not None and stability["from"] not in rivals:
+        # the model passed over for its instability where no record rests stays an alternative, so that
+        # the analysis reports there that the records do not decide the verdict
+        rivals = sorted(rivals[:MAX_ALTERNATIVES - 1] + [stability["from"]], key=lambda name: scores[name])
     model.metadata["alternatives"] = [alternative_entry(name, candidates[name], scores[name]) for name in rivals]
     model.metadata["selection"] = {"chosen": chosen, "training_error_pct": dict(scores),
                                    "nonzero": {name: int(c.n_parameters) for name, c in candidates.items()},
@@ -490,6 +507,9 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
                                    "equilibrium_grid": list(equilibrium_grid), "missing_equilibria": missing,
                                    "grid_stability": bool(grid_stability),
                                    "decay_margin": decay_margin, "decay_rechoice": rechoice,
+                                   # a choice unstable where no record rests, made again among those
+                                   # stable there (None: not made again)
+                                   "stability_rechoice": stability,
                                    # the short windows' costs, and the candidates they took out
                                    "window_costs": dict(window_costs) if window_costs else None,
                                    "window_excess": window_excess if window_costs else None,
@@ -574,6 +594,69 @@ def _decay_rechoice(chosen: str, eligible: list, candidates: dict, scores: dict,
     return {chosen: rate, **{name: rates[name] for name in pool}}
 
 
+def _below_rests(template: ExplicitModel, grid) -> list:
+    """Indices of the grid voltages ``grid`` (:func:`_grid_inputs`' order) below the lowest grid voltage
+    at which a record sat at rest (``metadata["reference_points"]``): where no record says anything
+    of the operating point. Empty where the configuration names no grid magnitude among the inputs
+    or the template has no rest points."""
+    points = template.metadata.get("reference_points") or []
+    roles = SignalRoles.from_mapping((template.metadata.get("config") or {}).get("roles") or {})
+    names = list(template.input_names)
+    if not grid or not points or roles.grid_magnitude not in names:
+        return []
+    k = names.index(roles.grid_magnitude)
+    lowest = min(float(point["inputs"][k]) for point in points)
+    return [index for index, value in enumerate(grid) if float(value) < lowest]
+
+
+def _stability_rechoice(chosen: str, eligible: list, candidates: dict, scores: dict, points: list, cache: dict,
+                        floor: float, floor_tolerance: float, grid_inputs: list, below: list,
+                        decay_margin: float = 0.0) -> dict | None:
+    """Where ``chosen`` has an equilibrium with a mode that does not decay (growth rate >= 0) at one of
+    the grid voltages ``below`` (indices into ``grid_inputs``: :func:`_below_rests`, where no record sat
+    at rest), the ``eligible`` candidates within ``floor_tolerance`` of the best eligible score above the
+    noise ``floor`` (the cut of :func:`_chosen_among`) that are stable at each of those grid voltages
+    where they have an equilibrium and have one wherever ``chosen`` has a stable one, and that decay at
+    the small-signal rest points at least at ``decay_margin``, or as fast as ``chosen`` where it decays
+    slower (the rule of :func:`_decay_rechoice` stands). Returns their largest growth rates over
+    ``below`` and ``chosen``'s (name -> 1/s, ``chosen`` first), or None where ``chosen`` is stable
+    there or no other candidate qualifies.
+
+    Why: 40 ms records resting at ug 0.8-1.2 do not pin the slow voltage-controller mode at low grid
+    voltages (the plant: -0.22 +- 0.91j 1/s at ug 0.2), and which of a fit's candidates puts it on the
+    wrong side of the axis there is a lottery of the pruning; the records tell those candidates apart
+    no better than their noise. Where no record rests either verdict is a guess; the rule takes the one
+    that keeps what the records showed where they rested (every mode decaying). The model passed over
+    stays among the model's alternatives, and the analysis says "not decided by the data" where they
+    disagree (IdentConfig.selection_stability_rechoice, with the measurements)."""
+    if not below or not grid_inputs:
+        return None
+    rates = _grid_rates(chosen, candidates, points, grid_inputs, cache)
+    unstable = [k for k in below if rates[k] is not None and rates[k] >= 0.0]
+    if not unstable:
+        return None
+    stable_elsewhere = [k for k, value in enumerate(rates) if value is not None and value < 0.0]
+    chosen_decay = _smallsignal_rate(chosen, candidates, points, cache)
+    decay_limit = None if chosen_decay is None else max(chosen_decay, -decay_margin)
+    cut = _floor_cut(floor, min(scores[name] for name in eligible), floor_tolerance)
+    found = {}
+    for name in eligible:
+        if name == chosen or not scores[name] <= cut:
+            continue
+        own = _grid_rates(name, candidates, points, grid_inputs, cache)
+        if any(own[k] is not None and own[k] >= 0.0 for k in below) or any(own[k] is None for k in unstable):
+            continue
+        if any(own[k] is None for k in stable_elsewhere):
+            continue
+        decay = _smallsignal_rate(name, candidates, points, cache)
+        if decay_limit is not None and (decay is None or decay > decay_limit):
+            continue
+        found[name] = max(own[k] for k in below if own[k] is not None)
+    if not found:
+        return None
+    return {chosen: max(rates[k] for k in unstable), **found}
+
+
 def _chosen_among(eligible: list, candidates: dict, scores: dict, tolerance: float, points: list,
                   verdicts: dict, competing: list | None = None, lost=frozenset(), grid_inputs=(),
                   passed: dict | None = None, floor: float | None = None, floor_tolerance: float = np.inf) -> str:
@@ -654,7 +737,8 @@ def _configured_selection(template: ExplicitModel, candidates: dict, scores: dic
                      refinement_expected=refinement_expected, rest_offset=cfg.selection_rest_offset,
                      tolerance_floor=tolerance_floor if tolerance is None else None,
                      floor_tolerance=cfg.selection_floor_tolerance, decay_margin=cfg.selection_decay_margin,
-                     window_costs=window_costs, window_excess=cfg.selection_window_excess)
+                     window_costs=window_costs, window_excess=cfg.selection_window_excess,
+                     stability_rechoice=cfg.selection_stability_rechoice)
 
 
 def _would_choose(template: ExplicitModel, candidates: dict, scores: dict, cfg: IdentConfig, verdicts: dict,
