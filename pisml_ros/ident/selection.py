@@ -456,29 +456,28 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
             chosen = _chosen_among([name for name in pool if missing[name] == fewest], candidates, scores,
                                    tolerance, points, verdicts, competing=eligible, lost=lost,
                                    grid_inputs=stability_grid, passed=passed, **above_floor)
-    rechoice = None
-    slow_rate = None
-    if models and decay_margin > 0 and tolerance_floor is not None and np.isfinite(floor_tolerance):
+    def rechosen(chosen: str, rates: dict) -> tuple:
+        # the choice made again among the candidates a re-choice rule let through (rates: theirs and
+        # the choice's): the rule's metadata record, and the new choice
+        pool = [name for name in rates if name != chosen]
+        to = _chosen_among(pool, candidates, scores, tolerance, points, verdicts, competing=eligible,
+                           lost=lost, grid_inputs=stability_grid, passed=passed, **above_floor)
+        return {"from": chosen, "rates": rates, "to": to}, to
+
+    noisy = tolerance_floor is not None and np.isfinite(floor_tolerance)
+    rechoice = stability = slow_rate = None
+    if models and decay_margin > 0 and noisy:
         rates = _decay_rechoice(chosen, eligible, candidates, scores, points, verdicts, decay_margin,
                                 tolerance_floor, floor_tolerance, grid_inputs)
         if rates:
-            pool = [name for name in rates if name != chosen]
-            rechoice = {"from": chosen, "rates": rates}
-            chosen = _chosen_among(pool, candidates, scores, tolerance, points, verdicts, competing=eligible,
-                                   lost=lost, grid_inputs=stability_grid, passed=passed, **above_floor)
-            rechoice["to"] = chosen
-    stability = None
-    if models and stability_rechoice and tolerance_floor is not None and np.isfinite(floor_tolerance):
+            rechoice, chosen = rechosen(chosen, rates)
+    if models and stability_rechoice and noisy:
         rates = _stability_rechoice(chosen, eligible, candidates, scores, points, verdicts, tolerance_floor,
                                     floor_tolerance, grid_inputs, _below_rests(template, equilibrium_grid),
                                     decay_margin)
         if rates:
-            pool = [name for name in rates if name != chosen]
-            stability = {"from": chosen, "rates": rates}
-            chosen = _chosen_among(pool, candidates, scores, tolerance, points, verdicts, competing=eligible,
-                                   lost=lost, grid_inputs=stability_grid, passed=passed, **above_floor)
-            stability["to"] = chosen
-    if models and decay_margin > 0 and tolerance_floor is not None and np.isfinite(floor_tolerance):
+            stability, chosen = rechosen(chosen, rates)
+    if models and decay_margin > 0 and noisy:
         slow_rate = _smallsignal_rate(chosen, candidates, points, verdicts)
     model = ExplicitModel(template.state_names, template.input_names, candidates[chosen].terms,
                           candidates[chosen].coefficients, dict(template.metadata))
