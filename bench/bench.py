@@ -266,8 +266,9 @@ def run_fit(method, plant, train, small, test, sweep, truth_spectra, config, lab
     return row, est
 
 
-def decay_record(rechoice):
-    """The selection's ``decay_rechoice`` (None where it made none) with finite rates (1/s)."""
+def rechoice_record(rechoice):
+    """A re-choice of the selection (``decay_rechoice``, ``stability_rechoice``; None where it made
+    none) with finite rates (1/s)."""
     if not rechoice:
         return None
     return {"from": rechoice["from"], "to": rechoice["to"],
@@ -308,7 +309,10 @@ def selection_record(model):
                           "turned_unstable": {k: list(v) for k, v in (selection.get("turned_unstable") or {}).items()},
                           # since stop 75: a choice whose slow mode barely decayed at the small-signal
                           # rest points, made again (selection._decay_rechoice): from, to, their rates
-                          "decay_rechoice": decay_record(selection.get("decay_rechoice")),
+                          "decay_rechoice": rechoice_record(selection.get("decay_rechoice")),
+                          # since stop 100: a choice unstable where no record rests, made again
+                          # (selection._stability_rechoice): from, to, their largest growth rates there
+                          "stability_rechoice": rechoice_record(selection.get("stability_rechoice")),
                           "training_error_pct": {k: finite(v) for k, v in selection["training_error_pct"].items()},
                           "nonzero": {k: int(v) for k, v in selection["nonzero"].items()},
                           "inconsistent_rest_points": {k: int(v) for k, v in
