@@ -185,21 +185,31 @@ def _with_equilibria(names, candidates: dict, scores: dict, points: list, verdic
             if np.isfinite(scores[name]) and None not in _growth_rates(name, candidates, points, verdicts)]
 
 
+def _roles(template: ExplicitModel) -> SignalRoles:
+    """The signal roles of the configuration ``template`` was fitted with."""
+    return SignalRoles.from_mapping((template.metadata.get("config") or {}).get("roles") or {})
+
+
+def _grid_magnitude_index(template: ExplicitModel) -> int | None:
+    """Where the grid-magnitude role sits among ``template``'s inputs; None where it is not one."""
+    names = list(template.input_names)
+    magnitude = _roles(template).grid_magnitude
+    return names.index(magnitude) if magnitude in names else None
+
+
 def _grid_inputs(template: ExplicitModel, grid) -> list:
     """Input vectors (``template.input_names`` order) at the grid voltages ``grid``: the input of
     the grid-magnitude role at each value, the grid phase at 0, any other input as at the rest point
     of lowest grid voltage (``metadata["reference_points"]``). Empty where the configuration names
     no grid magnitude among the inputs or the template has no rest points."""
     points = template.metadata.get("reference_points") or []
-    roles = SignalRoles.from_mapping((template.metadata.get("config") or {}).get("roles") or {})
-    names = list(template.input_names)
-    magnitude, phase = roles.grid_magnitude, roles.grid_phase
-    if not grid or not points or magnitude not in names:
+    k = _grid_magnitude_index(template)
+    if not grid or not points or k is None:
         return []
-    k = names.index(magnitude)
     base = np.array(min(points, key=lambda p: p["inputs"][k])["inputs"], dtype=float)
-    if phase in names:
-        base[names.index(phase)] = 0.0
+    phase = _roles(template).grid_phase
+    if phase in template.input_names:
+        base[list(template.input_names).index(phase)] = 0.0
     out = []
     for value in grid:
         inputs = base.copy()
@@ -599,11 +609,9 @@ def _below_rests(template: ExplicitModel, grid) -> list:
     of the operating point. Empty where the configuration names no grid magnitude among the inputs
     or the template has no rest points."""
     points = template.metadata.get("reference_points") or []
-    roles = SignalRoles.from_mapping((template.metadata.get("config") or {}).get("roles") or {})
-    names = list(template.input_names)
-    if not grid or not points or roles.grid_magnitude not in names:
+    k = _grid_magnitude_index(template)
+    if not grid or not points or k is None:
         return []
-    k = names.index(roles.grid_magnitude)
     lowest = min(float(point["inputs"][k]) for point in points)
     return [index for index, value in enumerate(grid) if float(value) < lowest]
 
