@@ -1011,13 +1011,13 @@ class IdentConfig:
     # recordings fitted afterwards and never looked at before (424-455,
     # `bench/sweeps/default-unseen-424-455-s100.json`): 23 of 32 against 21 (432, 444 mended, none
     # lost), spurious 2 against 4; 456-471, fitted with it (`default-unseen-456-471-s100.json`): 9 of 16,
-    # where it fired on 456 and 463, both within the targets (7 of 16 replayed without it). Own-model 3-bus / weak-line verdicts (bench/microgrid_bench.py's
-    # quick_verdicts) wrong on 24 of the 136 recordings against 25 (356, 369, 432 mended; 372 and 414
-    # broken, both outside the accuracy targets either way). Refitted with the rule on (bench/candidates.py),
-    # 8 of the 11 recordings whose choice it changes (341, 347, 356, 369, 378, 414, 432, 444) chose as
-    # replayed. On this plant the rule cannot cost a recording both targets (it fires only where the
-    # choice has a spurious mode); on a plant truly unstable at low ug it would hide that only where
-    # the records cannot tell, and the alternatives then say so
+    # where it fired on 456 and 463, both within the targets (7 of 16 replayed without it). Own-model
+    # 3-bus / weak-line verdicts (bench/microgrid_bench.py's quick_verdicts) wrong on 24 of the 136 recordings against
+    # 25 (356, 369, 432 mended; 372 and 414 broken, both outside the accuracy targets either way). Refitted with the
+    # rule on (bench/candidates.py), 8 of the 11 recordings whose choice it changes (341, 347, 356, 369, 378, 414,
+    # 432, 444) chose as replayed. On this plant the rule cannot cost a recording both targets (it fires only where
+    # the choice has a spurious mode); on a plant truly unstable at low ug it would hide that only where the records
+    # cannot tell, and the alternatives then say so
     selection_stability_rechoice: bool = True
     # the chosen model carries a warning (selection "warnings", printed by `pisml identify`, logged by
     # the identifier node) where its free-run error on the scoring records is above this ratio times

@@ -420,7 +420,11 @@ def _selected(template: ExplicitModel, candidates: dict, scores: dict, tolerance
     ``decay_margin`` (1/s; 0: off) and other eligible candidates within the floor tolerance of the
     best score (and with an equilibrium at each grid voltage where the choice has a stable one) decay
     at least that fast there, the choice is made again among those (:func:`_decay_rechoice`; the
-    metadata's ``decay_rechoice``).
+    metadata's ``decay_rechoice``). With ``stability_rechoice`` (noisy records too), where the choice
+    then is unstable at a grid voltage of ``equilibrium_grid`` below every rest point and other
+    eligible candidates within that cut are stable there, the choice is made again among those
+    (:func:`_stability_rechoice`; the metadata's ``stability_rechoice``), and the model passed over
+    stays among the alternatives.
 
     With ``window_costs`` (name -> :func:`.trajfit.window_costs` over windows of
     :data:`SELECTION_WINDOW` samples; low-SNR records only, ``IdentConfig.selection_window_excess``),
