@@ -2804,3 +2804,46 @@ def test_low_snr_records_are_refined_again_in_their_own_growing_windows_and_both
     assert "low_snr_pass" not in once.explicit_model_.metadata and once.metrics_["refinement_passes"] == 1.0
     note = noise_note(once.explicit_model_)
     assert "estimated SNR" in note and "refinement pass" not in note
+
+
+@pytest.mark.slow
+def test_a_second_neural_residual_is_refined_from_its_own_start_and_its_families_compete(train, small):
+    """``residual_fits`` 2 on noisy records: the residual is trained again from the next seed, distilled,
+    re-fitted and refined from its own start; its families, renamed `` (residual 2)``, compete in the
+    selection beside the first fit's (one family each), its record sits under ``residual_fits``, the
+    progress never goes back and the fit's own metrics stay the first pass's. Clean records: one fit."""
+    from pisml_ros.ident.selection import _refinement_family
+    from pisml_ros.plant.noise import add_measurement_noise
+
+    cfg = IdentConfig.from_mapping({**FAST, "residual_fits": 2, "limiter_search": False})
+    assert IdentConfig().residual_fits == 1 and cfg.seed == 0
+    est, updates = make_estimator("pisml", cfg), []
+    noisy_train, noisy_small = add_measurement_noise(train, 40.0, seed=1), add_measurement_noise(small, 40.0, seed=2)
+    est.fit(noisy_train, noisy_small, callback=updates.append)
+    progress = [u.progress for u in updates]
+    assert progress == sorted(progress) and progress[-1] == 1.0
+    assert any(u.stage == "training (residual 2)" for u in updates)
+    suffix = " (residual 2)"
+    second = sorted(name for name in est.candidates_ if name.endswith(suffix))
+    assert "refined" + suffix in second and "refined" in est.candidates_
+    # its own residual, its own refinement: not the first fit's models under another name
+    assert not np.allclose(est.candidates_["refined" + suffix].coefficients, est.candidates_["refined"].coefficients)
+    assert _refinement_family("pruned +0.1 % x3 at long windows" + suffix) == " at long windows" + suffix
+    # what came before the refinement stays the first fit's alone
+    assert "distilled" + suffix not in est.candidates_ and "distilled" in est.candidates_
+    meta = est.explicit_model_.metadata
+    [record] = meta["residual_fits"]
+    assert record["seed"] == 1 and record["suffix"] == suffix and record["seconds"] > 0
+    assert record["refinement_starts"] and "refinement_starts" in meta
+    assert set(second) <= set(meta["selection"]["training_error_pct"])
+    assert json.loads(est.explicit_model_.to_json())["metadata"]["residual_fits"][0]["seed"] == 1
+    assert est.metrics_["refinement_passes"] == 1.0 and est.metrics_["residual_fit_seconds"] > 0
+    assert "training (residual 2)" in est.history_ and "training" in est.history_
+    assert est.config is cfg and cfg.seed == 0
+    from pisml_ros.ident.noise import noise_note
+    assert noise_note(est.explicit_model_).endswith(
+        '; 2 neural residuals, each refined from its own start (candidates "... (residual 2)")')
+    # clean records: the first fit alone
+    clean = make_estimator("pisml", cfg).fit(train, small)
+    assert not any(name.endswith(suffix) for name in clean.candidates_)
+    assert "residual_fits" not in clean.explicit_model_.metadata

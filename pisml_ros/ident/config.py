@@ -146,6 +146,11 @@ class IdentConfig:
     lambda_pert: float = 1.0
     lambda_sparse: float = 1e-6
     seed: int = 0
+    # on noisy records (not low-SNR ones, low_snr_below_db): how many neural residuals are trained, from
+    # seeds seed, seed + 1, ...; each after the first is distilled, re-fitted and refined from its own
+    # best start (estimators.PISML._residual_family, no limit search), and its families compete in the
+    # selection, named "... (residual 2)"
+    residual_fits: int = 1
     # symbolic distillation over Θ_ext
     distill_degree: int = 2
     distill_threshold: float = 0.1
@@ -1122,7 +1127,7 @@ class IdentConfig:
         positive = ["backbone_span", "epochs", "window", "batch_windows", "substeps", "distill_samples", "distill_max_terms",
                     "refine_window", "refine_max_windows", "learning_rate", "refit_span", "refine_growing_substeps",
                     "refine_prune_rounds", "refine_long_branch_evaluations", "node_epochs", "node_learning_rate",
-                    "limiter_span", "refine_polish_damping"]
+                    "limiter_span", "refine_polish_damping", "residual_fits"]
         for key in positive:
             if getattr(self, key) <= 0:
                 raise ConfigError(f"identification config: {key} must be > 0, got {getattr(self, key)}")

@@ -339,7 +339,8 @@ def noise_note(model) -> str | None:
     """What the engine made of the training records' noise, in words for a user: their estimated SNR
     (``model.metadata["training"]["estimated_snr_db"]``, :func:`estimated_snr_db`), the free-run error
     the noise alone leaves (``metadata["selection"]["noise_floor_pct"]``) and whether they counted as
-    low-SNR (a ``metadata["low_snr_pass"]`` record, ``IdentConfig.low_snr_below_db``); None on clean
+    low-SNR (a ``metadata["low_snr_pass"]`` record, ``IdentConfig.low_snr_below_db``) and how many neural
+    residuals were refined (``metadata["residual_fits"]``, ``IdentConfig.residual_fits``); None on clean
     records."""
     metadata = getattr(model, "metadata", None) or {}
     snr = (metadata.get("training") or {}).get("estimated_snr_db")
@@ -347,7 +348,10 @@ def noise_note(model) -> str | None:
         return None
     floor = (metadata.get("selection") or {}).get("noise_floor_pct")
     low = metadata.get("low_snr_pass")
+    residuals = metadata.get("residual_fits") or []
     return (f"records' estimated SNR {snr:.1f} dB"
             + (f" (the noise alone leaves {floor:.3g} % free-run error)" if floor is not None else "")
             + (f"; low-SNR: a second refinement pass in windows of {', '.join(map(str, low['windows']))} "
-               f"samples (candidates \"...{low['suffix']}\")" if low else ""))
+               f"samples (candidates \"...{low['suffix']}\")" if low else "")
+            + (f"; {1 + len(residuals)} neural residuals, each refined from its own start (candidates "
+               + ", ".join(f'"...{record["suffix"]}"' for record in residuals) + ")" if residuals else ""))
