@@ -2816,7 +2816,7 @@ def test_a_second_neural_residual_is_refined_from_its_own_start_and_its_families
     from pisml_ros.plant.noise import add_measurement_noise
 
     cfg = IdentConfig.from_mapping({**FAST, "residual_fits": 2, "limiter_search": False})
-    assert IdentConfig().residual_fits == 1 and cfg.seed == 0
+    assert IdentConfig().residual_fits == 2 and cfg.seed == 0
     est, updates = make_estimator("pisml", cfg), []
     noisy_train, noisy_small = add_measurement_noise(train, 40.0, seed=1), add_measurement_noise(small, 40.0, seed=2)
     est.fit(noisy_train, noisy_small, callback=updates.append)

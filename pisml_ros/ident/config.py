@@ -149,8 +149,16 @@ class IdentConfig:
     # on noisy records (not low-SNR ones, low_snr_below_db): how many neural residuals are trained, from
     # seeds seed, seed + 1, ...; each after the first is distilled, re-fitted and refined from its own
     # best start (estimators.PISML._residual_family, no limit search), and its families compete in the
-    # selection, named "... (residual 2)"
-    residual_fits: int = 1
+    # selection, named "... (residual 2)". Why (stop 101): which 40 dB fits meet the targets turns on the
+    # residual's seed as much as on the noise draw (the same records with seed 1: 32 of the 48 unseen
+    # recordings 336-367 and 472-487 within both accuracy targets with no spurious mode, seed 0 27, both 21),
+    # and no feature of the records' schedules predicts which (scratch /tmp/s101/design.py: sag depths,
+    # pre-event voltages, jump sizes and times, noise floor; none separates hits from misses). Both fits'
+    # candidates in one selection (bench/candidates.py --set seed=1 tables pooled with the defaults' and
+    # replayed): 33 of 48 against 27, 6 won, none lost (337, 341, 351, 353, 477, 478); a wrong 3-bus or
+    # weak-line verdict on 4 of the 48 against 10. The cost: a 40 dB fit 54.1 / 53.4 s against 28.6 /
+    # 29.4 s (recordings 496 and 501, this machine)
+    residual_fits: int = 2
     # symbolic distillation over Θ_ext
     distill_degree: int = 2
     distill_threshold: float = 0.1
