@@ -156,8 +156,13 @@ class IdentConfig:
     # pre-event voltages, jump sizes and times, noise floor; none separates hits from misses). Both fits'
     # candidates in one selection (bench/candidates.py --set seed=1 tables pooled with the defaults' and
     # replayed): 33 of 48 against 27, 6 won, none lost (337, 341, 351, 353, 477, 478); a wrong 3-bus or
-    # weak-line verdict on 4 of the 48 against 10. The cost: a 40 dB fit 54.1 / 53.4 s against 28.6 /
-    # 29.4 s (recordings 496 and 501, this machine)
+    # weak-line verdict on 4 of the 48 against 10. Then fitted with it on the unseen 504-511
+    # (bench/sweeps/default-unseen-504-511-s101.json): 4 of 8, where the first residual's candidates alone
+    # (replayed) give 5 (won 505; lost 504, 0.229 / 0.356 -> 0.670 / 0.469 %, and 511, 0.480 / 0.511 ->
+    # 0.444 / 1.914 %); wrong verdicts on 2 of 8 against 5. Over the 56: 37 against 32, 8 won, 2 lost;
+    # verdicts wrong on 6 against 15. The cost: a 40 dB fit about doubles (recordings 496 and 501:
+    # 54.1 / 53.4 s against 28.6 / 29.4 s; make bench's ten: median 55.4 s against 26.4; 504-511: median
+    # 59.3 s, worst 161.9 s, the second residual's rescue on 506)
     residual_fits: int = 2
     # symbolic distillation over Θ_ext
     distill_degree: int = 2
