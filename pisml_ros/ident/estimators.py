@@ -290,8 +290,6 @@ class PISML(_Estimator):
                 job.close()
 
     def _fit(self, train: Dataset, smallsignal: Dataset | None, beside: list):
-        from .distill import distill_residual, merge, sample_envelope
-        from .neural import NeuralModel
         from .noise import noise_floor_error
 
         cfg = self.config
@@ -352,20 +350,14 @@ class PISML(_Estimator):
         started = time.monotonic()
         field = _train_field(self, train, smallsignal, backbone=backbone,
                              lambda_pert=cfg.lambda_pert if self.use_jacobian else 0.0)
-        trained_backbone = ExplicitModel(train.state_names, train.input_names, theta_terms,
-                                         field.coefficients().detach().numpy().copy(), dict(backbone.metadata))
-        hybrid = NeuralModel(field, train.state_names, train.input_names, reference_points(train),
-                             backbone=trained_backbone, kind="hybrid")
+        trained_backbone, hybrid = _hybrid_model(field, train, theta_terms, backbone)
         self.hybrid_ = hybrid
         self.metrics_["hybrid_seconds"] = time.monotonic() - started
         self._emit("hybrid", 0.6, model=hybrid)
         # 3. distillation of N over Θ_ext, merged with the trained backbone
         started = time.monotonic()
         ext = extended_library(cfg.roles, train.state_names, degree=cfg.distill_degree)
-        xs, us = sample_envelope(train, cfg.distill_samples, cfg.distill_spread, seed=cfg.seed)
-        basis, coef = distill_residual(hybrid.residual, xs, us, ext, signals, cfg.distill_threshold,
-                                       max_terms=cfg.distill_max_terms)
-        explicit = merge(trained_backbone, basis, coef, {"stage": "distilled"})
+        explicit = _distilled(hybrid, trained_backbone, train, ext, signals, cfg)
         self.distilled_ = explicit
         self.metrics_["distill_seconds"] = time.monotonic() - started
         self._emit("distillation", 0.7, losses={"terms": len(explicit.terms), "nonzero": explicit.n_parameters})
@@ -572,9 +564,6 @@ class PISML(_Estimator):
         renamed `` (residual k+1)``, and compete in the selection (``IdentConfig.residual_fits``).
         Returns the pass's record: the seed, the suffix, the seconds, what the pass wrote of its
         starts and tries, and the metrics it set (the fit's own metrics stay the first pass's)."""
-        from .distill import distill_residual, merge, sample_envelope
-        from .neural import NeuralModel
-
         started = time.monotonic()
         cfg = dataclasses.replace(self.config, seed=self.config.seed + k, limiter_search=False)
         train, signals, suffix = context.train, context.signals, f" (residual {k + 1})"
@@ -582,14 +571,8 @@ class PISML(_Estimator):
         field = _train_field(self, train, smallsignal, backbone, cfg.lambda_pert if self.use_jacobian else 0.0,
                              config=cfg, history=stage,
                              report=lambda epoch, losses: self._emit(stage, 0.7, epoch=epoch, losses=losses))
-        trained = ExplicitModel(train.state_names, train.input_names, theta_terms,
-                                field.coefficients().detach().numpy().copy(), dict(backbone.metadata))
-        hybrid = NeuralModel(field, train.state_names, train.input_names, reference_points(train),
-                             backbone=trained, kind="hybrid")
-        xs, us = sample_envelope(train, cfg.distill_samples, cfg.distill_spread, seed=cfg.seed)
-        basis, coef = distill_residual(hybrid.residual, xs, us, ext, signals, cfg.distill_threshold,
-                                       max_terms=cfg.distill_max_terms)
-        distilled = merge(trained, basis, coef, {"stage": "distilled"})
+        trained, hybrid = _hybrid_model(field, train, theta_terms, backbone)
+        distilled = _distilled(hybrid, trained, train, ext, signals, cfg)
         own = {"distilled": distilled, **_sparse_refits(distilled, library, train, cfg)}
         own_scores = training_errors(own, context.scoring)
         unrefined, metrics_before = set(own), dict(self.metrics_)
@@ -1375,6 +1358,29 @@ def _ridge_weight(train: Dataset, cfg: IdentConfig) -> float:
     ones: it is there to drop the pairs of terms that cancel along noisy records, and clean records
     pin their coefficients without it (its measurements were all on 40 dB data)."""
     return cfg.refine_ridge_weight if _noisy(train) else 0.0
+
+
+def _hybrid_model(field, train: Dataset, theta_terms: list, backbone: ExplicitModel) -> tuple:
+    """``(trained backbone, hybrid model)`` of a trained HybridField: Θ with the field's Ξ (the backbone's
+    metadata), and the field as a model with the records' rest points."""
+    from .neural import NeuralModel
+
+    trained = ExplicitModel(train.state_names, train.input_names, theta_terms,
+                            field.coefficients().detach().numpy().copy(), dict(backbone.metadata))
+    return trained, NeuralModel(field, train.state_names, train.input_names, reference_points(train),
+                                backbone=trained, kind="hybrid")
+
+
+def _distilled(hybrid, trained: ExplicitModel, train: Dataset, ext: list, signals: list,
+               cfg: IdentConfig) -> ExplicitModel:
+    """The hybrid's residual sampled on and around the training envelope (``cfg.seed``), fitted over the
+    extended library ``ext`` by sparse regression and merged with the ``trained`` backbone."""
+    from .distill import distill_residual, merge, sample_envelope
+
+    xs, us = sample_envelope(train, cfg.distill_samples, cfg.distill_spread, seed=cfg.seed)
+    basis, coef = distill_residual(hybrid.residual, xs, us, ext, signals, cfg.distill_threshold,
+                                   max_terms=cfg.distill_max_terms)
+    return merge(trained, basis, coef, {"stage": "distilled"})
 
 
 def _train_field(est: _Estimator, train: Dataset, smallsignal, backbone: ExplicitModel | None, lambda_pert: float,
