@@ -418,7 +418,7 @@ class PISML(_Estimator):
                 for k in range(1, 1 + more):
                     self._refinement_pass = (len(passes) + k - 1, shares)
                     records.append(self._residual_family(k, context, candidates, scores, backbone, theta_terms,
-                                                         ext, library, smallsignal))
+                                                         ext, smallsignal))
                 if records:
                     explicit.metadata["residual_fits"] = records
             finally:
@@ -557,7 +557,7 @@ class PISML(_Estimator):
                                         noise_floor if noisy else None, refine_from, add, superseded)
 
     def _residual_family(self, k: int, context: "_RefinementContext", candidates: dict, scores: dict,
-                         backbone: ExplicitModel, theta_terms: list, ext: list, library: list, smallsignal) -> dict:
+                         backbone: ExplicitModel, theta_terms: list, ext: list, smallsignal) -> dict:
         """The neural residual trained again from seed ``config.seed + k``, distilled, re-fitted and
         refined from its own best start as the first one was (a refinement pass of its own, without
         the limit search); its refined families join ``candidates`` and ``scores`` (in place),
@@ -573,7 +573,7 @@ class PISML(_Estimator):
                              report=lambda epoch, losses: self._emit(stage, 0.7, epoch=epoch, losses=losses))
         trained, hybrid = _hybrid_model(field, train, theta_terms, backbone)
         distilled = _distilled(hybrid, trained, train, ext, signals, cfg)
-        own = {"distilled": distilled, **_sparse_refits(distilled, library, train, cfg)}
+        own = {"distilled": distilled, **_sparse_refits(distilled, context.library, train, cfg)}
         own_scores = training_errors(own, context.scoring)
         unrefined, metrics_before = set(own), dict(self.metrics_)
         self._refine_pass(cfg, dataclasses.replace(context, explicit=distilled), own, own_scores, {}, None, None)
