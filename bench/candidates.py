@@ -68,7 +68,7 @@ def main(argv=None) -> int:
     est = make_estimator("pisml", IdentConfig.load(None, settings)).fit(train, small)
     selection = est.model_.metadata["selection"]
     print(f"fit {time.monotonic() - started:.1f} s, chosen {selection['chosen']!r}", flush=True)
-    rests = [(rest, record.u[0]) for record in [*train, *small]
+    rests = [(rest, record.u[0]) for record in [*train, *(small or [])]
              for _, rest in [steady_start_mean(record)] if rest is not None]
     rows, models = {}, {}
     # the chosen model's reference points start every candidate's equilibrium search, as they
