@@ -45,7 +45,35 @@ def state_errors(model, test, t_split: float = 0.02) -> dict:
         # the metric itself, one column at a time (a run that blew up counts as inf, as there)
         out[key] = {name: relative_error(pred.x[window][:, [j]], truth.x[window][:, [j]])
                     for name, j in zip(SCORED_STATES, test.state_index(SCORED_STATES))}
+    out["rest_hold"] = rest_hold(preds.trajectories[-1], test.trajectories[-1], test.state_index(SCORED_STATES))
     return out
+
+
+def _drift_text(hold: dict | None) -> str:
+    """The printed rest hold: the d-axis grid current's drift before the jump."""
+    if not hold or hold["drift"].get("ig_d") is None:
+        return "—"
+    return f"ig_d {hold['drift']['ig_d']:+.4f} in {hold['seconds'] * 1e3:.0f} ms"
+
+
+def rest_hold(pred, truth, columns) -> dict | None:
+    """How far a model run from the IOD record's first state (the plant at rest) has moved from it
+    when the record's input first changes: ``{"seconds": length of the rest, "drift": {state:
+    prediction − truth (p.u.)}}`` for the scored states, or None where the inputs change at once.
+
+    The plant holds its rest state; a model that does not drifts before the phase jump. Stop 103
+    (the 48 candidate tables of stop 102's recordings 512-559 at 40 dB, chosen models): 13 of the 18
+    outside the accuracy targets had moved the d-axis grid current by 4.5e-3 p.u. or more over the
+    8 ms before the jump, none of the 30 within them (their largest: 4.2e-3).
+    """
+    from pisml_ros.signals import SCORED_STATES
+
+    changed = np.flatnonzero(np.any(np.abs(np.diff(truth.u, axis=0)) > 0, axis=1))
+    if not changed.size or changed[0] == 0:
+        return None
+    k = int(changed[0])  # the last sample before the change
+    return {"seconds": float(truth.t[k] - truth.t[0]),
+            "drift": {name: float(pred.x[k, j] - truth.x[k, j]) for name, j in zip(SCORED_STATES, columns)}}
 
 
 def main(argv=None) -> int:
@@ -93,6 +121,9 @@ def main(argv=None) -> int:
                # each scored state's own error in the two windows (their mean is IOD / OOD)
                "iod_states": {k: finite(v) for k, v in states.get("iod", {}).items()},
                "ood_states": {k: finite(v) for k, v in states.get("ood", {}).items()},
+               # the IOD record's model run against the plant's rest, just before the phase jump
+               "rest_hold": None if not states.get("rest_hold") else
+               {**states["rest_hold"], "drift": {k: finite(v) for k, v in states["rest_hold"]["drift"].items()}},
                "lost_round": name in selection.get("lost_rounds", []),
                "spurious": spurious_points(found, truth),
                "rest_max_real": [min(rest_max), max(rest_max)] if rest_max else None}
@@ -102,6 +133,7 @@ def main(argv=None) -> int:
               f"OOD {errors['ood']:8.3f} W {w:8.2f} spurious {row['spurious']} "
               f"{'(lost round) ' if row['lost_round'] else ''}"
               f"IOD worst {max(states['iod'], key=states['iod'].get) if states else '—'} "
+              f"rest hold {_drift_text(row['rest_hold'])} "
               f"rest max Re {np.round(row['rest_max_real'], 2) if rest_max else '—'}", flush=True)
     if args.out:
         Path(args.out).write_text(json.dumps({"scenario": args.scenario, "plant": args.plant, "seed": args.seed,

@@ -3,6 +3,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
@@ -203,3 +204,20 @@ def test_a_scored_row_measures_the_models_operating_point_against_the_plant():
         assert row[key] == pytest.approx(benchmark[key], rel=1e-6), key
     assert row["coefficients"] == benchmark["n_parameters"]
     assert setting_sweep.meets(row)["operating_point"] is (benchmark["op_dq"] <= setting_sweep.OPERATING_POINT_DQ_LIMIT)
+
+
+def test_the_rest_hold_is_the_models_drift_from_the_plants_rest_when_the_input_first_changes():
+    import candidates
+    from pisml_ros.data.dataset import Trajectory
+
+    t = np.arange(6) * 1e-3
+    u = np.array([[1.0, 0.0]] * 3 + [[1.0, 0.5]] * 3)  # the angle jumps after the third sample
+    truth = Trajectory(0, t, np.ones((6, 4)), u)
+    drifting = Trajectory(0, t, np.ones((6, 4)) + np.outer(t, [1.0, -2.0, 0.0, 0.5]), u)
+    hold = candidates.rest_hold(drifting, truth, [0, 1, 2, 3])
+    assert hold["seconds"] == pytest.approx(2e-3)
+    assert hold["drift"] == pytest.approx({"ig_d": 2e-3, "ig_q": -4e-3, "vc_d": 0.0, "vc_q": 1e-3})
+    assert candidates._drift_text(hold) == "ig_d +0.0020 in 2 ms"
+    # inputs that change at once leave no rest to hold
+    ramp = Trajectory(0, t, np.ones((6, 4)), np.outer(t, [1.0, 1.0]))
+    assert candidates.rest_hold(drifting, ramp, [0, 1, 2, 3]) is None
