@@ -811,3 +811,82 @@ def test_max_real_near_is_one_alternative_verdict_and_none_without_an_equilibriu
 def _sample(model):
     rng = np.random.default_rng(0)
     return rng.normal(size=(5, model.n_states)), rng.normal(size=(5, 2))
+
+
+def test_rest_window_starts_are_the_rest_means_of_the_windows_inside_a_steady_start():
+    from pisml_ros.data import Dataset
+    from pisml_ros.data.dataset import Trajectory
+    from pisml_ros.ident.derivatives import rest_window_starts, trajectory_windows
+
+    t = np.arange(60) * 1e-4
+    x = np.ones((60, 2)) + np.where(t[:, None] >= 30e-4, 0.1, 0.0)  # at rest for 30 samples, then a step
+    u = np.where(t[:, None] >= 30e-4, 1.0, 0.0)
+    noise = 1e-3 * np.random.default_rng(1).standard_normal((60, 2))
+    rest = Trajectory(0, t, x + noise, u)
+    moving = Trajectory(1, t, x + t[:, None], u + t[:, None])  # never at rest
+    data = Dataset(["a", "b"], ["ug"], [rest, moving], {"dt": 1e-4})
+    targets, samples = rest_window_starts(data, 10)
+    assert len(targets) == len(trajectory_windows(data, 10)[0]) == 10
+    # windows from samples 0 and 10 lie inside the rest (samples 0-29), the one from 20 ends past it
+    np.testing.assert_array_equal(samples, [30, 30, 0, 0, 0, 0, 0, 0, 0, 0])
+    np.testing.assert_allclose(targets[:2], np.repeat(rest.x[:30].mean(axis=0)[None], 2, axis=0))
+    assert np.isnan(targets[2:]).all()
+    # the same thinning as the windows'
+    thinned, thinned_samples = rest_window_starts(data, 10, max_windows=4)
+    assert len(thinned) == len(trajectory_windows(data, 10, max_windows=4)[0]) == 4
+    np.testing.assert_array_equal(thinned_samples, [30, 0, 0, 0])
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_rest_start_prior_holds_the_rest_windows_starts_at_the_rest_mean(truth, threads):
+    """With ``rest_starts`` the windows inside a record's steady start get a prior of precision
+    rest_starts·samples/(window + 1) on their start offsets, centred where the start is the rest
+    mean: the cost and the start-state blocks add it, the coefficients' blocks stay as they were,
+    and fitting the starts alone moves those windows' starts to the rest mean."""
+    import torch
+
+    from pisml_ros.data import Dataset
+    from pisml_ros.data.dataset import Trajectory, steady_start_mean
+    from pisml_ros.ident.trajfit import TrajectoryFitter, _ShootingProblem
+
+    model, plant = truth
+    small = generate(plant, *schedules_for("smallsignal", n_traj=2, duration=0.008))
+    rng = np.random.default_rng(0)
+    noisy = Dataset(small.state_names, small.input_names,
+                    [Trajectory(tr.traj_id, tr.t, tr.x + 1e-3 * rng.standard_normal(tr.x.shape), tr.u) for tr in small],
+                    dict(small.metadata))
+    weights = np.full(13, 1e3)
+    start = model.coefficients * (1 + 0.01 * rng.standard_normal(model.coefficients.shape))
+
+    def problem(rest_starts):
+        fitter = TrajectoryFitter(model._terms, 13, noisy.dt, window=5, substeps=2, weights=weights, threads=threads,
+                                  rest_starts=rest_starts)
+        return _ShootingProblem(fitter, start, model.coefficients != 0, noisy, None, lambda_jac=0.0, ss_stride=5)
+
+    free, held = problem(0.0), problem(2.0)
+    assert free.rest_starts is None and held.rest_starts is not None and int((held.rest_starts[1] > 0).sum()) >= 4
+    offsets, precision = held.rest_starts
+    inside = precision[:, 0] > 0
+    length = steady_start_mean(noisy.trajectories[0])[0]
+    assert int(inside.sum()) == sum(steady_start_mean(tr)[0] // 5 - (steady_start_mean(tr)[0] % 5 == 0)
+                                    for tr in noisy)
+    assert float(precision[0, 0]) == pytest.approx(2.0 * length / 6)
+    # the first window's offset takes its start to the rest mean
+    rest = steady_start_mean(noisy.trajectories[0])[1]
+    np.testing.assert_allclose((held.X[0, 0] + offsets[0] * held.x_unit).numpy(), rest, rtol=1e-12, atol=1e-12)
+    theta = free.parameters(start)
+    z = 0.1 * torch.randn((free.n_windows, 13), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    prior = 0.5 * float((precision * (z - offsets) ** 2).sum())
+    assert held.cost(theta, z) == pytest.approx(free.cost(theta, z) + prior, rel=1e-12)
+    a, b = free.normal_equations(theta, z), held.normal_equations(theta, z)
+    prior_a = torch.diag_embed(precision.expand(-1, 13))
+    np.testing.assert_allclose(b["A"].numpy(), (a["A"] + prior_a).numpy(), rtol=1e-12)
+    np.testing.assert_allclose(b["bz"].numpy(), (a["bz"] + precision * (z - offsets)).numpy(), rtol=1e-12, atol=1e-12)
+    for name in ("H", "g", "E"):
+        np.testing.assert_allclose(b[name].numpy(), a[name].numpy(), rtol=1e-12)
+    # the starts fitted alone: the rest windows' near the rest mean, nearer than without the prior
+    z_free = free.fit_starts(theta, torch.zeros_like(z))
+    z_held = held.fit_starts(theta, torch.zeros_like(z))
+    assert float((z_held - offsets)[inside].abs().max()) < float((z_free - offsets)[inside].abs().max())
+    free.close()
+    held.close()

@@ -809,6 +809,10 @@ class IdentConfig:
     # 8 of 16 within both targets against 10, at most 84 coefficients 10 against 15; 46, 50 and 51
     # broke (1.2-2.2 % IOD, 1.3-3.6 % OOD), of the IOD misses only 54 mended (0.732 -> 0.331 %)
     refine_rest_weight: float = 0.0
+    # on noisy data, the refinement's windows that lie inside a record's steady start begin at its rest
+    # mean: a prior of this weight times the rest's samples (in the noise's units, the windows' scale)
+    # holds their start states there (trajfit._ShootingProblem.rest_starts); 0: off, free starts
+    refine_rest_starts: float = 0.0
     # ridge prior of the refinement (every stage; noisy data only since stop 44): each coefficient's share of
     # its equation, c_ij·rms(term i)/rms(f_j) over the fitted samples (f: the start model), costs
     # refine_ridge_weight·share²/2 (trajfit.TrajectoryFitter.fit); 0 switches it off. Why tried:
@@ -1152,6 +1156,7 @@ class IdentConfig:
                     "refine_growing_stability_weight", "refine_stage_prune_budget", "refine_stage_tolerance",
                     "refine_single_precision_stages",
                     "refine_prune_reference_samples", "refine_rest_weight", "limiter_rest_weight",
+                    "refine_rest_starts",
                     "refine_prune_zero_mode",
                     "refine_ridge_weight", "refine_max_step", "clean_growing_error",
                     "weight_decay", "node_weight_decay"]:

@@ -78,6 +78,32 @@ def cumulative_integral(values: np.ndarray, t: np.ndarray, quadrature: str = "tr
     return np.concatenate([np.zeros((1, values.shape[1])), np.cumsum(0.5 * (values[1:] + values[:-1]) * steps, 0)])
 
 
+def rest_window_starts(dataset: Dataset, window: int, stride: int | None = None, max_windows: int | None = None):
+    """For each window of :func:`trajectory_windows` (the same order and thinning): where the whole
+    window lies inside its trajectory's steady start (the record sat at rest), that rest's mean state
+    (:func:`~pisml_ros.data.dataset.steady_start_mean`) and its number of samples; NaN and 0 elsewhere.
+
+    Returns
+    -------
+    targets : ndarray, shape (n_windows, n_states)
+    samples : ndarray, shape (n_windows,)
+    """
+    from ..data.dataset import steady_start_mean
+
+    stride = stride or window
+    targets, samples = [], []
+    for tr in dataset:
+        end, rest = steady_start_mean(tr)
+        for start in range(0, len(tr) - window, stride):
+            inside = rest is not None and start + window < end  # samples start ... start + window
+            targets.append(rest if inside else np.full(tr.x.shape[1], np.nan))
+            samples.append(end if inside else 0)
+    if max_windows is not None and len(targets) > max_windows:
+        keep = np.linspace(0, len(targets) - 1, max_windows).round().astype(int)
+        targets, samples = [targets[k] for k in keep], [samples[k] for k in keep]
+    return np.array(targets, dtype=float).reshape(len(targets), -1), np.array(samples, dtype=float)
+
+
 def trajectory_windows(dataset: Dataset, window: int, stride: int | None = None, max_windows: int | None = None):
     """States and inputs of windows of ``window`` samples (+1 for the end point) cut from every trajectory.
 

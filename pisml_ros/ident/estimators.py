@@ -1600,7 +1600,8 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         substeps_used.add(substeps)
         return TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=window,
                                 substeps=substeps, weights=weights, max_windows=max_windows, threads=threads,
-                                single_precision=single_precision, held_levels=cfg.refine_held_levels)
+                                single_precision=single_precision, held_levels=cfg.refine_held_levels,
+                                rest_starts=cfg.refine_rest_starts if _noisy(train) else 0.0)
 
     errors = {} if errors is None else errors
     if cfg.refine_growing_windows and (_noisy(train) if growing is None else growing):

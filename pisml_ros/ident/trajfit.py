@@ -36,7 +36,7 @@ import scipy.linalg
 from ..data import Dataset
 from ..data.dataset import steady_start_mean
 from ..model.expressions import TermSet
-from .derivatives import trajectory_windows
+from .derivatives import rest_window_starts, trajectory_windows
 
 # |uᴴv| of unit left/right eigenvectors below which the stability prior treats an eigenvalue as
 # defective (no derivative): its first-order perturbation 1/|uᴴv| would exceed 1e6
@@ -198,7 +198,7 @@ class TrajectoryFitter:
 
     def __init__(self, terms: TermSet, n_states: int, dt: float, window: int = 50, substeps: int = 2,
                  weights=None, max_windows: int | None = None, threads: int = 1, single_precision: bool = False,
-                 held_levels: bool = False):
+                 held_levels: bool = False, rest_starts: float = 0.0):
         self.terms = terms
         self.n_states = n_states
         self.dt = dt
@@ -209,6 +209,7 @@ class TrajectoryFitter:
         self.threads = max(1, int(threads))
         self.single_precision = bool(single_precision)
         self.held_levels = bool(held_levels)
+        self.rest_starts = float(rest_starts)
 
     def fit(self, coef0: np.ndarray, mask: np.ndarray, train: Dataset, smallsignal: Dataset | None = None,
             lambda_jac: float = 1.0, max_nfev: int = 20, ss_stride: int = 5,
@@ -647,6 +648,18 @@ class _ShootingProblem:
         self.substeps = fitter.substeps
         self.h = fitter.dt / fitter.substeps
         xw, uw = trajectory_windows(train, fitter.window, max_windows=fitter.max_windows)
+        # the starts of the windows inside a record's steady start: the plant sat at its rest state,
+        # whose mean is known to noise/√samples, so a prior holds them there (z is in noise units; its
+        # precision scaled as the windows' residuals are) and a model that drifts off that rest pays
+        # for the whole window instead of moving its start to meet the drift
+        self.rest_starts = None
+        if fitter.rest_starts > 0:
+            targets, samples = rest_window_starts(train, fitter.window, max_windows=fitter.max_windows)
+            inside = samples > 0
+            if inside.any():
+                offsets = np.where(inside[:, None], (np.nan_to_num(targets) - xw[:, 0]) * fitter.weights, 0.0)
+                precision = fitter.rest_starts * samples / (fitter.window + 1)
+                self.rest_starts = (torch.tensor(offsets), torch.tensor(precision)[:, None])
         self.X = torch.tensor(xw)
         self.U = torch.tensor(uw)
         self.n_windows = self.X.shape[0]
@@ -1158,8 +1171,23 @@ class _ShootingProblem:
         eq, _ = self._equilibrium_residuals(theta)
         ridge = self.ridge_unit * np.asarray(theta)
         value = (traj + 0.5 * float((ss * ss).sum()) + 0.5 * float(stab @ stab) + 0.5 * float(eq @ eq)
-                 + 0.5 * float(ridge @ ridge))
+                 + 0.5 * float(ridge @ ridge) + self._rest_start_cost(z))
         return value if np.isfinite(value) else np.inf
+
+    def _rest_start_cost(self, z) -> float:
+        """The rest-start prior's cost (0 without it)."""
+        if self.rest_starts is None:
+            return 0.0
+        offsets, precision = self.rest_starts
+        return 0.5 * float((precision * (z - offsets).square()).sum())
+
+    def _add_rest_starts(self, blocks, z):
+        """The rest-start prior's curvature and gradient in the start-state blocks "A" and "bz"."""
+        if self.rest_starts is None:
+            return
+        offsets, precision = self.rest_starts
+        blocks["A"] += self.torch.diag_embed(precision.expand(-1, self.n))
+        blocks["bz"] += precision * (z - offsets)
 
     def normal_equations(self, theta, z) -> dict:
         torch = self.torch
@@ -1176,6 +1204,7 @@ class _ShootingProblem:
 
         with torch.no_grad():
             _, blocks, ss = self._shoot(theta, z, "zc", beside=smallsignal)
+        self._add_rest_starts(blocks, z)
         k = self.n_c  # the coefficients' entries; the held levels' after them
         if ss is not None:
             blocks["H"][:k, :k] += ss[0]
@@ -1223,6 +1252,7 @@ class _ShootingProblem:
         for _ in range(iterations):
             with torch.no_grad():
                 _, blocks, _ = self._shoot(theta, z, "z")
+            self._add_rest_starts(blocks, z)
             a = blocks["A"] + 1e-9 * torch.diag_embed(torch.diagonal(blocks["A"], dim1=1, dim2=2))
             trial = z - torch.linalg.solve(a, blocks["bz"][..., None])[..., 0]
             trial_cost = self.cost(theta, trial)
