@@ -821,8 +821,8 @@ class IdentConfig:
     # stop 103's on 560-575, fitted on the same machine): within both accuracy targets with no
     # spurious mode 32 of 48 against 27 (won 529, 532, 536, 538, 539, 543, 552, 556, 557, 561, 564,
     # 571, 572; lost 531, 534, 535, 540, 542, 551, 567, 570); the chosen models' drift before the
-    # jump mean 2.8e-3 against 3.5e-3 p.u., IOD median 0.35 against 0.37 %; any candidate within
-    # them (an oracle) 45 of 48 against 41; fits median 57.6 / 57.3 s against 59.2 / 57.5 s
+    # jump mean 2.7e-3 against 3.5e-3 p.u., IOD / OOD median 0.35 / 0.36 against 0.37 / 0.44 %; any
+    # candidate within them (an oracle) 45 of 48 against 42; fits median 57.6 s against 58.4 s
     refine_rest_starts: float = 1.0
     # ridge prior of the refinement (every stage; noisy data only since stop 44): each coefficient's share of
     # its equation, c_ij·rms(term i)/rms(f_j) over the fitted samples (f: the start model), costs
