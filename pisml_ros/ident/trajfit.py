@@ -194,6 +194,11 @@ class TrajectoryFitter:
         Where the training records' inputs were held at their stretch means (noisy measured inputs:
         their metadata's ``inputs_denoised``), fit each held level's error beside the coefficients
         (errors in variables, prior N(0, σ²/n); :func:`held_window_levels`).
+    rest_starts : float
+        Hold the start states of the windows inside a record's steady start (the plant at rest) at
+        the rest's mean state: a prior of precision ``rest_starts`` times the rest's samples, in the
+        noise's units and the windows' scale (:func:`~.derivatives.rest_window_starts`); 0: free
+        starts there too.
     """
 
     def __init__(self, terms: TermSet, n_states: int, dt: float, window: int = 50, substeps: int = 2,
