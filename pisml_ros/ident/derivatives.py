@@ -78,6 +78,19 @@ def cumulative_integral(values: np.ndarray, t: np.ndarray, quadrature: str = "tr
     return np.concatenate([np.zeros((1, values.shape[1])), np.cumsum(0.5 * (values[1:] + values[:-1]) * steps, 0)])
 
 
+def window_starts(dataset: Dataset, window: int, stride: int | None = None,
+                  max_windows: int | None = None) -> list:
+    """``(trajectory index, first sample)`` of every window of ``window`` samples (+1 for the end
+    point) cut from every trajectory, ``stride`` samples apart (default: back to back), evenly thinned
+    to at most ``max_windows``: the windows of :func:`trajectory_windows` and :func:`rest_window_starts`."""
+    stride = stride or window
+    starts = [(k, start) for k, tr in enumerate(dataset) for start in range(0, len(tr) - window, stride)]
+    if max_windows is not None and len(starts) > max_windows:
+        keep = np.linspace(0, len(starts) - 1, max_windows).round().astype(int)
+        starts = [starts[k] for k in keep]
+    return starts
+
+
 def rest_window_starts(dataset: Dataset, window: int, stride: int | None = None, max_windows: int | None = None):
     """For each window of :func:`trajectory_windows` (the same order and thinning): where the whole
     window lies inside its trajectory's steady start (the record sat at rest), that rest's mean state
@@ -90,18 +103,15 @@ def rest_window_starts(dataset: Dataset, window: int, stride: int | None = None,
     """
     from ..data.dataset import steady_start_mean
 
-    stride = stride or window
-    targets, samples = [], []
-    for tr in dataset:
-        end, rest = steady_start_mean(tr)
-        for start in range(0, len(tr) - window, stride):
-            inside = rest is not None and start + window < end  # samples start ... start + window
-            targets.append(rest if inside else np.full(tr.x.shape[1], np.nan))
-            samples.append(end if inside else 0)
-    if max_windows is not None and len(targets) > max_windows:
-        keep = np.linspace(0, len(targets) - 1, max_windows).round().astype(int)
-        targets, samples = [targets[k] for k in keep], [samples[k] for k in keep]
-    return np.array(targets, dtype=float).reshape(len(targets), -1), np.array(samples, dtype=float)
+    rests = [steady_start_mean(tr) for tr in dataset]
+    starts = window_starts(dataset, window, stride, max_windows)
+    targets = np.full((len(starts), len(dataset.state_names)), np.nan)
+    samples = np.zeros(len(starts))
+    for row, (k, start) in enumerate(starts):
+        end, rest = rests[k]
+        if rest is not None and start + window < end:  # samples start ... start + window
+            targets[row], samples[row] = rest, end
+    return targets, samples
 
 
 def trajectory_windows(dataset: Dataset, window: int, stride: int | None = None, max_windows: int | None = None):
@@ -120,15 +130,9 @@ def trajectory_windows(dataset: Dataset, window: int, stride: int | None = None,
     x : ndarray, shape (n_windows, window + 1, n_states)
     u : ndarray, shape (n_windows, window + 1, n_inputs)
     """
-    stride = stride or window
-    xs, us = [], []
-    for tr in dataset:
-        for start in range(0, len(tr) - window, stride):
-            xs.append(tr.x[start:start + window + 1])
-            us.append(tr.u[start:start + window + 1])
-    if not xs:
+    starts = window_starts(dataset, window, stride, max_windows)
+    if not starts:
         raise ValueError(f"no trajectory is longer than the window ({window} samples)")
-    if max_windows is not None and len(xs) > max_windows:
-        keep = np.linspace(0, len(xs) - 1, max_windows).round().astype(int)
-        xs, us = [xs[k] for k in keep], [us[k] for k in keep]
-    return np.array(xs), np.array(us)
+    trajectories = dataset.trajectories
+    return (np.array([trajectories[k].x[start:start + window + 1] for k, start in starts]),
+            np.array([trajectories[k].u[start:start + window + 1] for k, start in starts]))

@@ -1593,6 +1593,7 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
     threads = min(torch.get_num_threads(), SHOOTING_PARTS_MAX)
 
     substeps_used: set = set()
+    rest_starts = cfg.refine_rest_starts if _noisy(train) else 0.0  # (the prior is for noisy records)
 
     def make_fitter(window, max_windows, substeps=2, single_precision=False):
         if cfg.refine_max_step > 0:  # coarse samples: RK4's own error would bias the coefficients
@@ -1601,7 +1602,7 @@ def refine_explicit(model: ExplicitModel, train: Dataset, smallsignal: Dataset |
         return TrajectoryFitter(term_set(model.terms, signals), model.n_states, train.dt, window=window,
                                 substeps=substeps, weights=weights, max_windows=max_windows, threads=threads,
                                 single_precision=single_precision, held_levels=cfg.refine_held_levels,
-                                rest_starts=cfg.refine_rest_starts if _noisy(train) else 0.0)
+                                rest_starts=rest_starts)
 
     errors = {} if errors is None else errors
     if cfg.refine_growing_windows and (_noisy(train) if growing is None else growing):
